@@ -1,0 +1,697 @@
+"""Tests for mbst.campaign: reading, validation, writing and the summary."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from mbst.campaign import (
+    Campaign,
+    CampaignError,
+    TestSpec,
+    read_campaign,
+    summarize_campaign,
+    write_campaign,
+)
+from mbst.systems import get_system, known_systems
+
+SYSTEM = "eps-column-assist"
+NAME = "demo-eps"
+N = 200
+DT = 1e-3
+
+
+def make_frame(scenario: str, n: int = N, seed: int = 0) -> pd.DataFrame:
+    """Made-up data with every channel the family requires for ``scenario``.
+
+    Channel names come from the family, so the tests follow its table.
+    """
+    rng = np.random.default_rng(seed)
+    family = get_system(SYSTEM)
+    t = np.arange(n) * DT
+    cols: dict[str, np.ndarray] = {family.time_channel: t}
+    angle = 0.5 * np.sin(2 * np.pi * 2.0 * t)
+    for name in family.required_channels(scenario):
+        if name == family.time_channel:
+            continue
+        if name == family.input_channel:
+            cols[name] = angle
+        else:
+            cols[name] = 3.0 * angle + 0.01 * rng.standard_normal(n)
+    return pd.DataFrame(cols)
+
+
+def make_specs() -> list[TestSpec]:
+    family = get_system(SYSTEM)
+    blocked, free = family.scenarios[0], family.scenarios[1]
+    connected = family.scenarios[-1]
+    return [
+        TestSpec(
+            id="s1_sine",
+            file="tests/s1_sine.csv",
+            scenario=blocked,
+            input={"kind": "sine", "amplitude_deg": 30, "frequency_hz": 2.0},
+            motor="passive",
+            role="identification",
+        ),
+        TestSpec(
+            id="s2_sine",
+            file="tests/s2_sine.csv",
+            scenario=free,
+            input={"kind": "sine", "amplitude_deg": 30, "frequency_hz": 2.0},
+            motor="passive",
+            role="identification",
+        ),
+        TestSpec(
+            id="s3_ctrl",
+            file="tests/s3_ctrl.csv",
+            scenario=connected,
+            input={"kind": "sweep", "f0_hz": 0.1, "f1_hz": 5.0},
+            motor="assist",
+            role="control",
+            vehicle_speed_kph=50.0,
+            assist_mode="city",
+        ),
+    ]
+
+
+def build(tmp_path: Path, fmt: str = "csv", name: str = NAME) -> Path:
+    """Write a small valid campaign and return its directory."""
+    specs = make_specs()
+    tests = [(s, make_frame(s.scenario, seed=i)) for i, s in enumerate(specs)]
+    known = {"pinion_radius_m": 0.0075, "worm_gear_ratio": 16.5}
+    return write_campaign(
+        tmp_path / "camp", name=name, system=SYSTEM, known=known, tests=tests, fmt=fmt
+    )
+
+
+def load_yaml(camp: Path) -> dict:
+    return yaml.safe_load((camp / "campaign.yaml").read_text())
+
+
+def save_yaml(camp: Path, doc: dict) -> None:
+    (camp / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+def edit_test(camp: Path, test_id: str, **changes) -> None:
+    doc = load_yaml(camp)
+    for entry in doc["tests"]:
+        if entry["id"] == test_id:
+            for key, value in changes.items():
+                if value is None:
+                    entry.pop(key, None)
+                else:
+                    entry[key] = value
+    save_yaml(camp, doc)
+
+
+def edit_csv(camp: Path, test_id: str, fn) -> None:
+    path = camp / "tests" / f"{test_id}.csv"
+    df = pd.read_csv(path)
+    df = fn(df)
+    df.to_csv(path, index=False)
+
+
+def error(camp: Path) -> CampaignError:
+    with pytest.raises(CampaignError) as info:
+        read_campaign(camp)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert "Traceback" not in msg
+    return info.value
+
+
+def family():
+    return get_system(SYSTEM)
+
+
+# --------------------------------------------------------------------------- happy path
+
+
+def test_read_valid_campaign(tmp_path):
+    camp = build(tmp_path)
+    c = read_campaign(camp)
+    assert isinstance(c, Campaign)
+    assert c.name == NAME and c.system == SYSTEM
+    assert c.path == camp
+    assert c.known == {"pinion_radius_m": 0.0075, "worm_gear_ratio": 16.5}
+    assert [s.id for s in c.tests] == ["s1_sine", "s2_sine", "s3_ctrl"]
+    assert set(c.data) == {"s1_sine", "s2_sine", "s3_ctrl"}
+    assert [s.id for s in c.identification_tests()] == ["s1_sine", "s2_sine"]
+    assert [s.id for s in c.control_tests()] == ["s3_ctrl"]
+    assert c.test("s3_ctrl").vehicle_speed_kph == 50.0
+    assert c.sample_time_s("s1_sine") == pytest.approx(DT)
+
+
+def test_accepts_yaml_path(tmp_path):
+    camp = build(tmp_path)
+    c = read_campaign(camp / "campaign.yaml")
+    assert c.path == camp
+    assert len(c.tests) == 3
+
+
+def test_lazy_loading(tmp_path):
+    camp = build(tmp_path)
+    c = read_campaign(camp, load_data=False)
+    assert c.data == {}
+    df = c.frame("s2_sine")
+    assert len(df) == N
+    assert set(c.data) == {"s2_sine"}
+
+
+def test_lazy_loading_still_validates(tmp_path):
+    camp = build(tmp_path)
+    edit_csv(camp, "s2_sine", lambda df: df.iloc[:50])
+    c = read_campaign(camp, load_data=False)
+    with pytest.raises(CampaignError, match="50 samples"):
+        c.frame("s2_sine")
+
+
+def test_unknown_test_id(tmp_path):
+    c = read_campaign(build(tmp_path))
+    with pytest.raises(CampaignError) as info:
+        c.test("nope")
+    assert "nope" in str(info.value) and "s1_sine" in str(info.value)
+
+
+def test_error_str_names_every_piece():
+    err = CampaignError(
+        "value is NaN",
+        campaign="demo-eps",
+        test="s2_sine",
+        column="steering_torque_nm",
+        row=17,
+        path="tests/s2_sine.csv",
+    )
+    assert str(err) == (
+        "campaign 'demo-eps', test 's2_sine', file tests/s2_sine.csv, "
+        "column 'steering_torque_nm', row 17: value is NaN"
+    )
+    assert str(CampaignError("plain\nmessage")) == "plain message"
+    again = pickle.loads(pickle.dumps(err))
+    assert str(again) == str(err) and again.row == 17
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_round_trip(tmp_path, fmt):
+    specs = make_specs()
+    specs[0].extra = {"operator": "jd", "notes": {"temp_c": 21.5}}
+    frames = [make_frame(s.scenario, seed=i) for i, s in enumerate(specs)]
+    frames[1]["lab_temperature_c"] = np.linspace(20.1, 21.3, N)
+    camp = write_campaign(
+        tmp_path / "rt",
+        name=NAME,
+        system=SYSTEM,
+        known={"wheel_mass_kg": 80.0, "motor_inertia_kgm2": np.float64(4.5e-5)},
+        tests=list(zip(specs, frames)),
+        extra={"site": "bench 3", "date": "2024-05-01"},
+        fmt=fmt,
+    )
+    c = read_campaign(camp)
+    expected = [TestSpec(**{**s.__dict__, "file": f"tests/{s.id}.{fmt}"}) for s in specs]
+    assert c.tests == expected
+    assert c.known == {"wheel_mass_kg": 80.0, "motor_inertia_kgm2": 4.5e-5}
+    assert c.extra == {"site": "bench 3", "date": "2024-05-01"}
+    for spec, frame in zip(specs, frames):
+        pd.testing.assert_frame_equal(c.frame(spec.id), frame, check_exact=True)
+    doc = load_yaml(camp)
+    assert doc["format"] == "mbst-campaign/1"
+    assert list(doc)[:3] == ["format", "name", "system"]
+    assert [t["id"] for t in doc["tests"]] == [s.id for s in specs]
+    assert "vehicle_speed_kph" not in doc["tests"][0]
+    assert doc["tests"][2]["assist_mode"] == "city"
+
+
+def test_write_refuses_existing_without_overwrite(tmp_path):
+    camp = build(tmp_path)
+    with pytest.raises(CampaignError, match="already exists"):
+        build(tmp_path)
+    assert read_campaign(camp).name == NAME
+
+
+def test_write_overwrite_replaces_and_cleans_up(tmp_path):
+    camp = build(tmp_path)
+    (camp / "stale.txt").write_text("old")
+    spec = make_specs()[0]
+    write_campaign(
+        camp,
+        name="second",
+        system=SYSTEM,
+        known={},
+        tests=[(spec, make_frame(spec.scenario))],
+        overwrite=True,
+    )
+    c = read_campaign(camp)
+    assert c.name == "second" and [s.id for s in c.tests] == [spec.id]
+    assert not (camp / "stale.txt").exists()
+    # No temporary or backup siblings are left behind.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["camp"]
+
+
+def test_write_failure_leaves_nothing(tmp_path):
+    spec = make_specs()[0]
+    with pytest.raises(CampaignError):
+        write_campaign(
+            tmp_path / "bad",
+            name=NAME,
+            system=SYSTEM,
+            known={},
+            tests=[(spec, make_frame(spec.scenario))],
+            extra={"unrepresentable": object()},
+        )
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_rejects_path_like_id(tmp_path):
+    spec = make_specs()[0]
+    spec.id = "../escape"
+    with pytest.raises(CampaignError, match="file name"):
+        write_campaign(
+            tmp_path / "c",
+            name=NAME,
+            system=SYSTEM,
+            known={},
+            tests=[(spec, make_frame(spec.scenario))],
+        )
+
+
+def test_unknown_keys_preserved(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["operator"] = "J. Doe"
+    doc["rig"] = {"id": 7}
+    doc["tests"][1]["comment"] = "after re-zeroing"
+    doc["tests"][1]["input"]["phase_deg"] = 90
+    save_yaml(camp, doc)
+    c = read_campaign(camp)
+    assert c.extra == {"operator": "J. Doe", "rig": {"id": 7}}
+    assert c.test("s2_sine").extra == {"comment": "after re-zeroing"}
+    assert c.test("s2_sine").input["phase_deg"] == 90
+
+
+def test_extra_columns_kept(tmp_path):
+    camp = build(tmp_path)
+    optional = [c.name for c in family().channels if not c.required_in]
+    edit_csv(camp, "s1_sine", lambda df: df.assign(daq_status=1, **{optional[0]: 0.5}))
+    df = read_campaign(camp).frame("s1_sine")
+    assert "daq_status" in df.columns and optional[0] in df.columns
+    assert df[optional[0]].dtype == np.float64
+
+
+def test_summary_mentions_every_test(tmp_path):
+    c = read_campaign(build(tmp_path))
+    text = summarize_campaign(c)
+    for spec in c.tests:
+        assert spec.id in text
+    assert NAME in text and SYSTEM in text and "pinion_radius_m" in text
+    assert "1000.0" in text  # sample rate
+    assert str(N) in text
+    assert "WARNING" not in text
+
+
+def test_summary_warns_without_control(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s3_ctrl", role="identification")
+    text = summarize_campaign(read_campaign(camp))
+    assert "WARNING: no control test" in text
+    assert "no identification test" not in text
+
+
+def test_summary_warns_without_identification(tmp_path):
+    camp = build(tmp_path)
+    for tid in ("s1_sine", "s2_sine"):
+        edit_test(camp, tid, role="control")
+    text = summarize_campaign(read_campaign(camp))
+    assert "WARNING: no identification test" in text
+
+
+# --------------------------------------------------------------------------- campaign.yaml errors
+
+
+def test_missing_campaign_yaml(tmp_path):
+    camp = build(tmp_path)
+    (camp / "campaign.yaml").unlink()
+    err = error(camp)
+    assert "missing campaign.yaml" in str(err)
+    assert str(camp) in str(err)
+
+
+def test_missing_directory(tmp_path):
+    err = error(tmp_path / "nowhere")
+    assert "nowhere" in str(err)
+
+
+def test_yaml_does_not_parse(tmp_path):
+    camp = build(tmp_path)
+    text = (camp / "campaign.yaml").read_text().splitlines()
+    text.insert(2, "bad: [unclosed")
+    (camp / "campaign.yaml").write_text("\n".join(text) + "\n")
+    err = error(camp)
+    assert "YAML does not parse" in str(err)
+    assert "line " in str(err)
+    assert "campaign.yaml" in str(err)
+
+
+def test_top_level_not_mapping(tmp_path):
+    camp = build(tmp_path)
+    (camp / "campaign.yaml").write_text("- a\n- b\n")
+    assert "must be a mapping" in str(error(camp))
+
+
+def test_empty_yaml(tmp_path):
+    camp = build(tmp_path)
+    (camp / "campaign.yaml").write_text("")
+    assert "empty file" in str(error(camp))
+
+
+def test_wrong_format(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["format"] = "mbst-campaign/2"
+    save_yaml(camp, doc)
+    msg = str(error(camp))
+    assert "mbst-campaign/2" in msg and "mbst-campaign/1" in msg and NAME in msg
+
+
+def test_missing_format(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    del doc["format"]
+    save_yaml(camp, doc)
+    assert "missing key 'format'" in str(error(camp))
+
+
+@pytest.mark.parametrize("key", ["name", "system", "tests"])
+def test_missing_top_key(tmp_path, key):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    del doc[key]
+    save_yaml(camp, doc)
+    assert f"missing key '{key}'" in str(error(camp))
+
+
+def test_unknown_system(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["system"] = "hydraulic-rack"
+    save_yaml(camp, doc)
+    msg = str(error(camp))
+    assert "hydraulic-rack" in msg and NAME in msg
+    for name in known_systems():
+        assert name in msg
+
+
+def test_known_value_not_number(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["known"]["worm_gear_ratio"] = "sixteen"
+    save_yaml(camp, doc)
+    msg = str(error(camp))
+    assert "worm_gear_ratio" in msg and "sixteen" in msg and NAME in msg
+
+
+def test_known_not_mapping(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["known"] = [1, 2]
+    save_yaml(camp, doc)
+    assert "'known' must be a mapping" in str(error(camp))
+
+
+def test_tests_not_list(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["tests"] = {"id": "x"}
+    save_yaml(camp, doc)
+    assert "'tests' must be a list" in str(error(camp))
+
+
+def test_tests_empty(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["tests"] = []
+    save_yaml(camp, doc)
+    assert "'tests' is empty" in str(error(camp))
+
+
+@pytest.mark.parametrize("key", ["file", "scenario", "role", "motor", "input"])
+def test_test_missing_key(tmp_path, key):
+    camp = build(tmp_path)
+    edit_test(camp, "s2_sine", **{key: None})
+    err = error(camp)
+    msg = str(err)
+    assert f"missing key '{key}'" in msg
+    assert f"campaign '{NAME}'" in msg and "test 's2_sine'" in msg
+    assert err.test == "s2_sine"
+
+
+def test_test_missing_id_named_by_index(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    del doc["tests"][1]["id"]
+    save_yaml(camp, doc)
+    msg = str(error(camp))
+    assert "tests entry 2" in msg and "missing key 'id'" in msg and NAME in msg
+
+
+def test_test_entry_not_mapping(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["tests"][0] = "s1_sine"
+    save_yaml(camp, doc)
+    assert "tests entry 1 must be a mapping" in str(error(camp))
+
+
+def test_duplicate_test_id(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s2_sine", id="s1_sine")
+    msg = str(error(camp))
+    assert "duplicate test id" in msg and "test 's1_sine'" in msg and NAME in msg
+
+
+def test_unknown_scenario(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s2_sine", scenario="upside_down")
+    msg = str(error(camp))
+    assert "upside_down" in msg and "test 's2_sine'" in msg and NAME in msg
+    for scenario in family().scenarios:
+        assert scenario in msg
+
+
+def test_bad_role(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s3_ctrl", role="validation")
+    msg = str(error(camp))
+    assert "validation" in msg and "identification" in msg and "test 's3_ctrl'" in msg
+
+
+def test_bad_motor(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s1_sine", motor="turbo")
+    msg = str(error(camp))
+    assert "turbo" in msg and "test 's1_sine'" in msg
+    for mode in family().motor_modes:
+        assert mode in msg
+
+
+def test_input_not_mapping(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s1_sine", input="sine")
+    msg = str(error(camp))
+    assert "'input' must be a mapping" in msg and "test 's1_sine'" in msg
+
+
+def test_file_not_found(tmp_path):
+    camp = build(tmp_path)
+    (camp / "tests" / "s2_sine.csv").unlink()
+    err = error(camp)
+    msg = str(err)
+    assert "not found" in msg and "test 's2_sine'" in msg and NAME in msg
+    assert "s2_sine.csv" in msg
+    assert Path(err.path) == camp / "tests" / "s2_sine.csv"
+
+
+def test_file_not_found_even_without_loading(tmp_path):
+    camp = build(tmp_path)
+    edit_test(camp, "s2_sine", file="tests/elsewhere.csv")
+    with pytest.raises(CampaignError, match="elsewhere.csv"):
+        read_campaign(camp, load_data=False)
+
+
+def test_bad_extension(tmp_path):
+    camp = build(tmp_path)
+    (camp / "tests" / "s1_sine.csv").rename(camp / "tests" / "s1_sine.txt")
+    edit_test(camp, "s1_sine", file="tests/s1_sine.txt")
+    msg = str(error(camp))
+    assert "extension" in msg and ".txt" in msg and "test 's1_sine'" in msg
+
+
+# --------------------------------------------------------------------------- data errors
+
+
+def test_unreadable_file(tmp_path):
+    camp = build(tmp_path)
+    (camp / "tests" / "s1_sine.csv").write_text("")
+    msg = str(error(camp))
+    assert "test 's1_sine'" in msg and "s1_sine.csv" in msg and NAME in msg
+
+
+def test_unreadable_parquet(tmp_path):
+    camp = build(tmp_path, fmt="parquet")
+    (camp / "tests" / "s1_sine.parquet").write_bytes(b"not parquet at all")
+    msg = str(error(camp))
+    assert "cannot read parquet" in msg and "test 's1_sine'" in msg
+
+
+def test_non_numeric_cell(tmp_path):
+    camp = build(tmp_path)
+    col = family().input_channel
+
+    def corrupt(df):
+        df[col] = df[col].astype(object)
+        df.loc[41, col] = "12,5"  # 0-based 41 -> data row 42
+        return df
+
+    edit_csv(camp, "s1_sine", corrupt)
+    err = error(camp)
+    msg = str(err)
+    assert f"column '{col}'" in msg and "row 42" in msg and "'12,5'" in msg
+    assert "test 's1_sine'" in msg and NAME in msg
+    assert err.row == 42 and err.column == col
+
+
+def test_missing_required_column(tmp_path):
+    camp = build(tmp_path)
+    fam = family()
+    spec = make_specs()[2]
+    col = fam.required_channels(spec.scenario)[-1]
+    edit_csv(camp, spec.id, lambda df: df.drop(columns=[col]))
+    msg = str(error(camp))
+    assert f"column '{col}'" in msg and "missing column" in msg
+    assert f"test '{spec.id}'" in msg and NAME in msg
+
+
+def test_optional_column_not_required(tmp_path):
+    # The blocked-column scenario needs fewer channels than the others.
+    fam = family()
+    blocked = make_specs()[0].scenario
+    others = set(fam.required_channels(make_specs()[1].scenario))
+    assert set(fam.required_channels(blocked)) < others
+    read_campaign(build(tmp_path))
+
+
+@pytest.mark.parametrize(("bad", "word"), [(np.nan, "NaN"), (np.inf, "inf"), (-np.inf, "-inf")])
+def test_non_finite_required(tmp_path, bad, word):
+    camp = build(tmp_path)
+    col = family().required_channels(make_specs()[1].scenario)[2]
+
+    def corrupt(df):
+        df.loc[16, col] = bad  # data row 17
+        df.loc[30, col] = bad  # a later one must not be reported
+        return df
+
+    edit_csv(camp, "s2_sine", corrupt)
+    err = error(camp)
+    msg = str(err)
+    assert f"column '{col}'" in msg and "row 17" in msg and f"value is {word}" in msg
+    assert "test 's2_sine'" in msg and NAME in msg
+
+
+def test_empty_cell_is_nan(tmp_path):
+    camp = build(tmp_path)
+    path = camp / "tests" / "s1_sine.csv"
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    col = header[-1]
+    cells = lines[5].split(",")  # line 5 = data row 5
+    cells[-1] = ""
+    lines[5] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    msg = str(error(camp))
+    assert f"column '{col}'" in msg and "row 5" in msg and "NaN" in msg
+
+
+def test_non_finite_optional_present(tmp_path):
+    camp = build(tmp_path)
+    optional = next(c.name for c in family().channels if not c.required_in)
+
+    def corrupt(df):
+        df[optional] = 0.0
+        df.loc[99, optional] = np.nan  # data row 100
+        return df
+
+    edit_csv(camp, "s1_sine", corrupt)
+    msg = str(error(camp))
+    assert f"column '{optional}'" in msg and "row 100" in msg and "NaN" in msg
+
+
+def test_nan_in_extra_column_is_fine(tmp_path):
+    camp = build(tmp_path)
+
+    def add(df):
+        df["comment_code"] = 1.0
+        df.loc[3, "comment_code"] = np.nan
+        return df
+
+    edit_csv(camp, "s1_sine", add)
+    df = read_campaign(camp).frame("s1_sine")
+    assert np.isnan(df.loc[3, "comment_code"])
+
+
+def test_time_not_increasing(tmp_path):
+    camp = build(tmp_path)
+    tcol = family().time_channel
+
+    def corrupt(df):
+        df.loc[59, tcol] = df.loc[58, tcol]  # data row 60 repeats row 59
+        return df
+
+    edit_csv(camp, "s1_sine", corrupt)
+    err = error(camp)
+    msg = str(err)
+    assert f"column '{tcol}'" in msg and "row 60" in msg and "strictly increasing" in msg
+    assert "test 's1_sine'" in msg and NAME in msg
+
+
+def test_time_not_uniform(tmp_path):
+    camp = build(tmp_path)
+    tcol = family().time_channel
+
+    def corrupt(df):
+        df.loc[120, tcol] += 0.05 * DT  # data row 121 is 5 % late
+        return df
+
+    edit_csv(camp, "s2_sine", corrupt)
+    msg = str(error(camp))
+    assert f"column '{tcol}'" in msg and "row 121" in msg and "not uniform" in msg
+    assert "test 's2_sine'" in msg and NAME in msg
+
+
+def test_time_jitter_within_tolerance(tmp_path):
+    camp = build(tmp_path)
+    tcol = family().time_channel
+
+    def jitter(df):
+        df.loc[120, tcol] += 0.004 * DT  # 0.4 %: allowed
+        return df
+
+    edit_csv(camp, "s2_sine", jitter)
+    read_campaign(camp)
+
+
+def test_too_few_samples(tmp_path):
+    camp = build(tmp_path)
+    edit_csv(camp, "s3_ctrl", lambda df: df.iloc[:99])
+    msg = str(error(camp))
+    assert "99 samples" in msg and "100" in msg and "test 's3_ctrl'" in msg and NAME in msg
+
+
+def test_exactly_min_samples_ok(tmp_path):
+    camp = build(tmp_path)
+    edit_csv(camp, "s3_ctrl", lambda df: df.iloc[:100])
+    assert len(read_campaign(camp).frame("s3_ctrl")) == 100
