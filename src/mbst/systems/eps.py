@@ -112,7 +112,7 @@ def substeps(p: np.ndarray, scenario: str, dt: float) -> int:
         "blocked_rack", "suspended", "tires_on_ground"
     ):
         h = min(h, H_TIE_ROD_FRICTION_S)
-    return max(1, int(math.ceil(dt / h - 1e-9)))
+    return max(1, math.ceil(dt / h - 1e-9))
 
 
 def initial_state(p: np.ndarray, scenario: str, theta0: float) -> np.ndarray:

@@ -106,7 +106,7 @@ B_TIRE = friction_base("tires")
 # bodies in Gauss–Seidel order
 BODY_PINION, BODY_MOTOR, BODY_RACK, BODY_WHEEL = 0, 1, 2, 3
 
-_JIT = dict(cache=True, nogil=True, error_model="numpy")
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 # ---- elementary laws ----------------------------------------------------------------

@@ -1,0 +1,3 @@
+from mbst.cli import main
+import sys
+sys.exit(main())

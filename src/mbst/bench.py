@@ -1,0 +1,295 @@
+"""Virtual test bench (seed 000, "simulation for testing").
+
+Runs the one EPS model on a test plan and writes what a real rig would: a
+campaign in the spec format with sensor noise and campaign-wide offsets. The
+ground truth goes to ``truth.json`` beside the campaign, never inside it, so
+nothing downstream can peek.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mbst.campaign import TestSpec, write_campaign
+from mbst.systems import eps
+from mbst.systems.eps_channels import SYSTEM_NAME, TIE_RODS_CONNECTED
+from mbst.systems.eps_params import EFFECTS, as_dict, effect, vector_from
+
+# Sensor noise, rms (eps-model.md "Measured-data realities")
+NOISE_RMS = {
+    "steering_angle_rad": math.radians(0.05),
+    "steering_torque_nm": 0.02,
+    "rack_position_m": 2e-5,
+    "tie_rod_force_left_n": 5.0,
+    "tie_rod_force_right_n": 5.0,
+    "motor_angle_rad": 2e-3,
+    "motor_current_a": 0.05,
+}
+
+# The demo rig: inside the typical ranges of eps-model.md, not at the model defaults,
+# so identification has something to find.
+KNOWN = {
+    "pinion_radius_m": 7.5e-3,
+    "worm_gear_ratio": 16.5,
+    "column_inertia_kgm2": 2.1e-3,
+    "motor_inertia_kgm2": 4.5e-5,
+    "wheel_mass_kg": 80.0,
+}
+DEMO_RIG = {
+    **KNOWN,
+    "torsion_bar.stiffness_nm_per_rad": 92.0,
+    "worm_gear.stiffness_nm_per_rad": 1.5e4,
+    "worm_gear.damping_nms_per_rad": 1.1,
+    "tie_rods.stiffness_n_per_m": 6.5e5,
+    "tie_rods.damping_ns_per_m": 2800.0,
+    "tires.centring_stiffness_n_per_m": 2.2e4,
+    "steering_column.coulomb_nm": 0.07,
+    "steering_column.viscous_nms_per_rad": 0.012,
+    "motor.coulomb_nm": 0.025,
+    "motor.viscous_nms_per_rad": 2.0e-4,
+    "rack.coulomb_n": 240.0,
+    "rack.viscous_ns_per_m": 4000.0,
+    "tires.coulomb_n": 2600.0,
+    "tires.viscous_ns_per_m": 3000.0,
+}
+DEMO_OFFSETS = {
+    "offset.steering_torque_nm": 0.04,
+    "offset.rack_position_m": 4e-4,
+    "offset.tie_rod_force_left_n": 25.0,
+    "offset.tie_rod_force_right_n": -18.0,
+    "offset.motor_angle_rad": 0.7,
+    "offset.motor_current_a": 0.03,
+}
+DEFAULT_SENSORS = (
+    "steering_angle_rad",
+    "steering_torque_nm",
+    "rack_position_m",
+    "tie_rod_force_left_n",
+    "tie_rod_force_right_n",
+)
+OPTIONAL_SENSORS = ("motor_angle_rad", "motor_current_a")
+DEMO_EFFECTS = ("backlash:worm_gear",)
+
+
+@dataclass(frozen=True)
+class PlannedTest:
+    """One bench test: scenario, input profile and role."""
+
+    id: str
+    scenario: str
+    input: dict
+    role: str = "identification"
+    motor: str = "passive"
+
+
+def demo_plan() -> list[PlannedTest]:
+    """Seed 000's campaign: scenarios (1) blocked column, (2) free tie-rods, (3) tires on ground.
+
+    0.2 and 0.8 Hz sines on each, slow ramps on (2) and (3), a 0.8 Hz free
+    tie-rods test held out as control (and one on the full system).
+    """
+    sine = lambda a, f, c: {"kind": "sine", "amplitude_deg": a, "frequency_hz": f, "cycles": c}  # noqa: E731
+    ramp = lambda a, r: {"kind": "ramp", "amplitude_deg": a, "rate_deg_per_s": r}  # noqa: E731
+    return [
+        PlannedTest("s1_sine_0p2hz", "blocked_column", sine(5, 0.2, 2)),
+        PlannedTest("s1_sine_0p8hz", "blocked_column", sine(5, 0.8, 5)),
+        PlannedTest("s2_sine_0p2hz", "free_tie_rods", sine(30, 0.2, 2)),
+        PlannedTest("s2_sine_0p8hz", "free_tie_rods", sine(30, 0.8, 5)),
+        PlannedTest("s2_ramp", "free_tie_rods", ramp(40, 20)),
+        PlannedTest("s2_sine_0p8hz_ctrl", "free_tie_rods", sine(45, 0.8, 5), role="control"),
+        PlannedTest("s3_sine_0p2hz", "tires_on_ground", sine(120, 0.2, 2)),
+        PlannedTest("s3_sine_0p8hz", "tires_on_ground", sine(100, 0.8, 5)),
+        PlannedTest("s3_ramp", "tires_on_ground", ramp(120, 40)),
+        PlannedTest("s3_sine_0p5hz_ctrl", "tires_on_ground", sine(110, 0.5, 3), role="control"),
+    ]
+
+
+def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Time and steering angle (rad) of an input profile, starting and ending at rest."""
+    kind = spec["kind"]
+    a = math.radians(float(spec.get("amplitude_deg", 30.0)))
+    lead = 0.5  # s at rest before the motion: the initial state is then known
+    if kind == "sine":
+        f = float(spec["frequency_hz"])
+        dur = float(spec.get("cycles", 3)) / f
+        t = np.arange(0.0, lead + dur + lead, 1.0 / sample_rate_hz)
+        tm = np.clip(t - lead, 0.0, dur)
+        # a one-cycle cosine taper keeps the angle and its rate continuous at the ends
+        taper = np.minimum(1.0, np.minimum(tm, dur - tm) * f)
+        taper = 0.5 - 0.5 * np.cos(np.pi * taper)
+        ang = a * taper * np.sin(2 * np.pi * f * tm)
+    elif kind in ("ramp", "triangle"):
+        rate = math.radians(float(spec.get("rate_deg_per_s", 20.0)))
+        hold = float(spec.get("hold_s", 1.0)) if kind == "ramp" else 0.0
+        tr = a / rate
+        # 0 → +A, hold, +A → −A, hold, −A → 0
+        knots_t = np.cumsum([0, lead, tr, hold, 2 * tr, hold, tr, lead])
+        knots_a = [0, 0, a, a, -a, -a, 0, 0]
+        t = np.arange(0.0, knots_t[-1], 1.0 / sample_rate_hz)
+        ang = np.interp(t, knots_t, knots_a)
+        # round the corners (1 % of a ramp) so the rate has no jumps the sensor could not see
+        k = max(1, int(0.01 * tr * sample_rate_hz))
+        ang = np.convolve(np.pad(ang, k, mode="edge"), np.ones(2 * k + 1) / (2 * k + 1), "valid")
+    elif kind == "sweep":
+        f0, f1 = float(spec.get("f0_hz", 0.1)), float(spec.get("f1_hz", 2.0))
+        dur = float(spec.get("duration_s", 20.0))
+        t = np.arange(0.0, lead + dur + lead, 1.0 / sample_rate_hz)
+        tm = np.clip(t - lead, 0.0, dur)
+        phase = 2 * np.pi * (f0 * tm + 0.5 * (f1 - f0) / dur * tm**2)
+        taper = np.clip(np.minimum(tm, dur - tm) / min(1.0, dur / 4), 0, 1)
+        ang = a * taper * np.sin(phase)
+    elif kind == "step":
+        dur = float(spec.get("duration_s", 6.0))
+        t = np.arange(0.0, lead + dur, 1.0 / sample_rate_hz)
+        rise = float(spec.get("rise_s", 0.05))
+        ang = a * np.clip((t - lead) / rise, 0.0, 1.0)
+    else:
+        raise ValueError(f"the bench cannot generate input kind '{kind}'")
+    return t, ang
+
+
+def parse_effect(text: str) -> tuple[str, dict[str, float]]:
+    """``EFFECT:COMPONENT[:param=value,...]`` → (catalogue key, named model values).
+
+    Parameters not given take the catalogue's realistic default size.
+    """
+    parts = text.split(":")
+    if len(parts) < 2:
+        raise ValueError(f"--effect '{text}': expected EFFECT:COMPONENT[:param=value,...]")
+    spec = effect(parts[0], parts[1])
+    values = dict(spec.default_size)
+    if len(parts) > 2 and parts[2]:
+        for item in ":".join(parts[2:]).split(","):
+            if "=" not in item:
+                raise ValueError(f"--effect '{text}': '{item}' is not param=value")
+            k, v = item.split("=", 1)
+            k = k.strip()
+            if k not in spec.headline:
+                raise ValueError(
+                    f"--effect '{text}': '{k}' is not a parameter of {spec.key} "
+                    f"(it has: {', '.join(spec.headline)})"
+                )
+            try:
+                values[spec.headline[k]] = float(v)
+            except ValueError:
+                raise ValueError(f"--effect '{text}': '{v}' is not a number") from None
+    return spec.key, values
+
+
+@dataclass
+class BenchRecipe:
+    """What to put on the virtual rig."""
+
+    effects: list[str] = field(default_factory=lambda: list(DEMO_EFFECTS))
+    seed: int = 0
+    noise_scale: float = 1.0
+    sensors: tuple[str, ...] = DEFAULT_SENSORS
+    sample_rate_hz: float = 500.0
+    plan: list[PlannedTest] | None = None
+    name: str = "demo-eps"
+    rig: dict[str, float] = field(default_factory=lambda: dict(DEMO_RIG))
+    offsets: dict[str, float] = field(default_factory=lambda: dict(DEMO_OFFSETS))
+
+    def effect_values(self) -> list[tuple[str, dict[str, float]]]:
+        return [parse_effect(e) for e in self.effects]
+
+    def true_params(self) -> np.ndarray:
+        values = {**self.rig, **self.offsets}
+        for _, v in self.effect_values():
+            values.update(v)
+        return vector_from(values)
+
+
+def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
+    """Noisy measured tests of the recipe's plan, deterministic in the seed."""
+    p = recipe.true_params()
+    for s in recipe.sensors:
+        if s not in NOISE_RMS:
+            raise ValueError(f"unknown sensor '{s}' (known: {', '.join(NOISE_RMS)})")
+    tests = []
+    for i, pt in enumerate(recipe.plan or demo_plan()):
+        rng = np.random.default_rng([recipe.seed, i])  # per test: order-independent
+        t, ang = input_profile(pt.input, recipe.sample_rate_hz)
+        sim = eps.simulate(pt.scenario, pt.motor, t, ang, p)
+        sim["steering_angle_rad"] = ang
+        cols = {"time_s": t}
+        for ch in _channels_for(pt.scenario, recipe.sensors):
+            noise = NOISE_RMS[ch] * recipe.noise_scale
+            cols[ch] = sim[ch] + noise * rng.standard_normal(len(t))
+        spec = TestSpec(id=pt.id, file=f"tests/{pt.id}.csv", scenario=pt.scenario,
+                        input=dict(pt.input), motor=pt.motor, role=pt.role)
+        tests.append((spec, pd.DataFrame(cols)))
+    return tests
+
+
+def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
+    out = []
+    for ch in sensors:
+        if ch == "rack_position_m" and scenario == "blocked_column":
+            continue
+        if ch.startswith("tie_rod_force") and scenario not in TIE_RODS_CONNECTED:
+            continue
+        if ch.startswith("motor_") and scenario == "blocked_column":
+            continue
+        out.append(ch)
+    for req in ("steering_angle_rad", "steering_torque_nm"):
+        if req not in out:
+            out.insert(0, req)
+    return out
+
+
+def truth_record(recipe: BenchRecipe) -> dict:
+    """Ground truth: every parameter, the hidden effects with headline sizes, offsets."""
+    p = recipe.true_params()
+    effects = []
+    for key, values in recipe.effect_values():
+        spec = EFFECTS[key]
+        effects.append({
+            "effect": spec.effect,
+            "component": spec.component,
+            "parameters": {h: values[n] for h, n in spec.headline.items()},
+        })
+    return {
+        "format": "mbst-bench-truth/1",
+        "campaign": recipe.name,
+        "seed": recipe.seed,
+        "noise_scale": recipe.noise_scale,
+        "noise_rms": {k: v * recipe.noise_scale for k, v in NOISE_RMS.items()},
+        "effects": effects,
+        "params": as_dict(p),
+    }
+
+
+def run_bench(out_dir: str | Path, recipe: BenchRecipe, overwrite: bool = True) -> Path:
+    """Write ``out_dir/campaign/`` and ``out_dir/truth.json``; return the campaign path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tests = simulate_plan(recipe)
+    camp = write_campaign(
+        out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=dict(KNOWN), tests=tests,
+        extra={"generated_by": "mbst bench", "seed": recipe.seed}, overwrite=overwrite,
+    )
+    write_json_atomic(out / "truth.json", truth_record(recipe))
+    return camp
+
+
+def write_json_atomic(path: str | Path, obj: dict) -> None:
+    """Write JSON to a temporary name in the same folder, then rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(obj, fh, indent=2, sort_keys=False)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,54 @@
+"""Exponential filtering (seed 000) and the signals derived from it.
+
+The same first-order filter runs on every measured channel and on every
+simulated twin before any comparison, so the phase lag is the same on both
+sides (eps-model.md, "Preprocessing").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import lfilter
+
+
+def filter_alpha(dt_s: float, tau_s: float) -> float:
+    """α = 1 − exp(−Δt/τ); τ = 0 means no filtering (α = 1)."""
+    if tau_s <= 0:
+        return 1.0
+    return 1.0 - math.exp(-dt_s / tau_s)
+
+
+def exponential_filter(x: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
+    """y[n] = y[n−1] + α·(x[n] − y[n−1]), started at y[0] = x[0] (no start-up transient).
+
+    Works along the first axis, so a (samples, channels) array filters every
+    channel identically.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    a = filter_alpha(dt_s, tau_s)
+    if a >= 1.0:
+        return x.copy()
+    # y[n] − (1−α)·y[n−1] = α·x[n], with the initial condition y[−1] = x[0]
+    zi = (1.0 - a) * x[:1]
+    y, _ = lfilter([a], [1.0, -(1.0 - a)], x, axis=0, zi=zi)
+    return y
+
+
+def filter_channels(
+    channels: dict[str, np.ndarray], dt_s: float, tau_s: float
+) -> dict[str, np.ndarray]:
+    """The same exponential filter on every channel of a dict."""
+    return {k: exponential_filter(v, dt_s, tau_s) for k, v in channels.items()}
+
+
+def angular_velocity(time_s: np.ndarray, filtered_angle_rad: np.ndarray) -> np.ndarray:
+    """Rate of the filtered measured angle.
+
+    Central differences (second order, no extra phase lag) of the already
+    filtered angle: the exponential filter has removed the sensor noise that
+    differentiation would amplify, and the column friction sees the same
+    lagged speed in the model as in the filtered torque it is compared with.
+    """
+    return np.gradient(np.asarray(filtered_angle_rad, dtype=np.float64), time_s)
