@@ -62,6 +62,15 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from mbst.summary import write_summary
+
+    out = write_summary([Path(p) for p in args.inputs], Path(args.out))
+    if not args.quiet:
+        print(f"wrote {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="mbst",
@@ -99,6 +108,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
     p.add_argument("--seed", type=int, default=0, help="seed of the multi-start")
     p.set_defaults(func=_cmd_identify)
+
+    p = add("report", "collect per-campaign results into one table (results/summary.csv)")
+    p.add_argument("kind", choices=["summary"], help="what to write")
+    p.add_argument("inputs", nargs="+", help="per-campaign result folders (results/<campaign>)")
+    p.add_argument("--out", required=True, help="CSV to write")
+    p.set_defaults(func=_cmd_report)
     return ap
 
 
