@@ -1,0 +1,318 @@
+"""Output-error fitting of the physics model to filtered test data.
+
+Shared by identification (the cascade) and discovery (refits with an
+inserted effect). Tests are prepared once (filtered, input rate computed);
+a ``FitProblem`` frees a subset of the parameter vector and exposes
+residuals and a batched finite-difference Jacobian to
+``scipy.optimize.least_squares``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import savgol_filter
+
+from mbst.campaign import Campaign, TestSpec
+from mbst.preprocess import exponential_filter
+from mbst.systems import eps
+from mbst.systems import eps_kernel as K
+from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS
+
+OUTPUT_CHANNELS = (
+    "steering_torque_nm",
+    "rack_position_m",
+    "tie_rod_force_left_n",
+    "tie_rod_force_right_n",
+    "motor_angle_rad",
+    "motor_current_a",
+)
+
+
+@dataclass
+class PreparedTest:
+    """One test ready for fitting: model input and filtered measured outputs."""
+
+    spec: TestSpec
+    time_s: np.ndarray
+    angle_in_rad: np.ndarray
+    omega_rad_per_s: np.ndarray
+    measured: dict[str, np.ndarray]
+    dt_s: float
+    tau_s: float
+    raw: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def id(self) -> str:
+        return self.spec.id
+
+    @property
+    def scenario(self) -> str:
+        return self.spec.scenario
+
+
+INPUT_WINDOW_S = 0.1
+
+
+def smooth_input(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WINDOW_S
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-phase smoothed angle and its rate (Savitzky–Golay, cubic).
+
+    The column friction switches within v_ε = 2e-3 rad/s; 0.05° of angle
+    noise differentiated at 2 ms gives ~0.2 rad/s, which would flip its sign
+    at random near every reversal. A local cubic over ``window_s`` removes
+    the noise without lag, and its analytic derivative is the rate.
+    """
+    n = int(round(window_s / dt_s)) | 1
+    if n < 5 or len(angle_rad) <= n:
+        ang = np.asarray(angle_rad, float).copy()
+        return ang, np.gradient(ang, dt_s)
+    ang = savgol_filter(angle_rad, n, 3, mode="interp")
+    rate = savgol_filter(angle_rad, n, 3, deriv=1, delta=dt_s, mode="interp")
+    return ang, rate
+
+
+def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
+                 input_window_s: float = INPUT_WINDOW_S) -> PreparedTest:
+    """Filter a test's channels and derive the model input.
+
+    The model is driven by the measured angle smoothed without lag
+    (``smooth_input``); simulated outputs then get the same causal
+    exponential filter as the measured ones, so both sides carry the same
+    phase lag (eps-model.md, "Preprocessing").
+    """
+    df = campaign.frame(spec.id)
+    t = df["time_s"].to_numpy(float)
+    dt = float((t[-1] - t[0]) / (len(t) - 1))
+    ang = df["steering_angle_rad"].to_numpy(float)
+    ang_in, rate = smooth_input(ang, dt, input_window_s)
+    measured = {}
+    raw = {}
+    for ch in OUTPUT_CHANNELS:
+        if ch in df.columns:
+            raw[ch] = df[ch].to_numpy(float)
+            measured[ch] = exponential_filter(raw[ch], dt, tau_s)
+    return PreparedTest(spec, t, ang_in, rate, measured, dt, tau_s, raw)
+
+
+def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
+    """Simulated channels of a prepared test, filtered like their measured twins."""
+    sim = eps.simulate(pt.scenario, pt.spec.motor, pt.time_s, pt.angle_in_rad, p,
+                       pt.omega_rad_per_s)
+    out = {ch: exponential_filter(sim[ch], pt.dt_s, pt.tau_s) for ch in pt.measured}
+    for k, v in sim.items():
+        if k.startswith("internal."):
+            out[k] = v
+    return out
+
+
+def _twins_batch(pt: PreparedTest, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
+    """Simulate many parameter vectors on one test in parallel (numba prange)."""
+    n_sub = max(eps.substeps(p, pt.scenario, pt.dt_s) for p in ps)
+    scen, mode = K.SCENARIO_CODES[pt.scenario], K.MOTOR_CODES[pt.spec.motor]
+    x0s = np.stack([eps.initial_state(p, pt.scenario, float(pt.angle_in_rad[0])) for p in ps])
+    raw = K.simulate_batch(pt.angle_in_rad, pt.omega_rad_per_s, np.ascontiguousarray(ps), scen,
+                           mode, n_sub, x0s, pt.dt_s)
+    out = []
+    for k in range(len(ps)):
+        sens = eps.sensors_from_raw(raw[k], ps[k], pt.scenario)
+        out.append({ch: exponential_filter(sens[ch], pt.dt_s, pt.tau_s) for ch in pt.measured})
+    return out
+
+
+def channel_scales(tests: list[PreparedTest]) -> dict[str, float]:
+    """Pooled standard deviation of each measured channel (residual weights)."""
+    pooled: dict[str, list[np.ndarray]] = {}
+    for pt in tests:
+        for ch, y in pt.measured.items():
+            pooled.setdefault(ch, []).append(y - y.mean())
+    return {ch: float(np.std(np.concatenate(v))) or 1.0 for ch, v in pooled.items()}
+
+
+class FitProblem:
+    """Least-squares problem over the free parameters ``free``.
+
+    Parameters are mapped to an unconstrained-ish coordinate ``u``: the log
+    for positive log-scale parameters, value/typical otherwise, so that
+    finite differences and trust regions see comparable steps.
+    """
+
+    def __init__(
+        self,
+        tests: list[PreparedTest],
+        channels: dict[str, list[str]],
+        free: list[str],
+        base: np.ndarray,
+        scales: dict[str, float],
+        lower: dict[str, float] | None = None,
+        upper: dict[str, float] | None = None,
+        decimate: int = 1,
+        prior_weight: float = 1e-3,
+    ) -> None:
+        self.tests = tests
+        self.channels = channels
+        self.free = list(free)
+        self.base = np.array(base, dtype=float)
+        self.scales = scales
+        self.decimate = max(1, int(decimate))
+        self.idx = np.array([PARAM_INDEX[n] for n in self.free], dtype=int)
+        specs = [PARAM_SPECS[i] for i in self.idx]
+        lo = np.array([(lower or {}).get(s.name, s.lower) for s in specs])
+        hi = np.array([(upper or {}).get(s.name, s.upper) for s in specs])
+        self.log = np.array([s.log_scale and s.lower > 0 for s in specs])
+        self.typ = np.array([max(abs(s.default), (s.upper - s.lower) / 20.0, 1e-12)
+                             for s in specs])
+        self.lb = self._to_u(lo)
+        self.ub = self._to_u(hi)
+        self.n_eval = 0
+        # weak prior towards the start: keeps a parameter the data cannot see where it
+        # was (flagged non-identifiable) instead of letting it drift to a bound
+        self.u_prior = self.u_of(self.base)
+        self.prior_w = np.array([0.0 if n.startswith("offset.") else prior_weight
+                                 for n in self.free])
+
+    # coordinates ------------------------------------------------------------------
+    def _to_u(self, theta: np.ndarray) -> np.ndarray:
+        theta = np.asarray(theta, float)
+        return np.where(self.log, np.log(np.maximum(theta, 1e-300)), theta / self.typ)
+
+    def _from_u(self, u: np.ndarray) -> np.ndarray:
+        return np.where(self.log, np.exp(u), u * self.typ)
+
+    def dtheta_du(self, u: np.ndarray) -> np.ndarray:
+        return np.where(self.log, np.exp(u), self.typ)
+
+    def u_of(self, p: np.ndarray) -> np.ndarray:
+        return np.clip(self._to_u(p[self.idx]), self.lb, self.ub)
+
+    def p_of(self, u: np.ndarray) -> np.ndarray:
+        p = self.base.copy()
+        p[self.idx] = self._from_u(u)
+        return p
+
+    # residuals --------------------------------------------------------------------
+    def _weights(self, pt: PreparedTest, ch: str) -> float:
+        # each test counts alike whatever its length; channels in units of their spread
+        n = len(pt.time_s[:: self.decimate])
+        return 1.0 / (self.scales[ch] * math.sqrt(n))
+
+    def _res_of_twin(self, pt: PreparedTest, twin: dict[str, np.ndarray]) -> np.ndarray:
+        parts = []
+        for ch in self.channels[pt.id]:
+            w = self._weights(pt, ch)
+            parts.append(((twin[ch] - pt.measured[ch]) * w)[:: self.decimate])
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def residuals(self, u: np.ndarray) -> np.ndarray:
+        p = self.p_of(u)
+        self.n_eval += 1
+        out = []
+        for pt in self.tests:
+            out.append(self._res_of_twin(pt, simulate_twin(pt, p)))
+        out.append(self.prior_w * (u - self.u_prior))
+        r = np.concatenate(out)
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def jacobian(self, u: np.ndarray) -> np.ndarray:
+        """Forward differences, all perturbations of a test simulated in one batch."""
+        h = 1e-5 * np.maximum(1.0, np.abs(u))
+        # step away from the nearer bound so the perturbed point stays feasible
+        sgn = np.where(u + h > self.ub, -1.0, 1.0)
+        us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in range(len(u))]
+        ps = np.stack([self.p_of(v) for v in us])
+        cols = []
+        for pt in self.tests:
+            twins = _twins_batch(pt, ps)
+            r0 = self._res_of_twin(pt, twins[0])
+            cols.append(np.stack(
+                [(self._res_of_twin(pt, twins[j + 1]) - r0) / (sgn[j] * h[j])
+                 for j in range(len(u))], axis=1))
+        self.n_eval += len(us)
+        cols.append(np.diag(self.prior_w))
+        jac = np.concatenate(cols, axis=0)
+        return np.where(np.isfinite(jac), jac, 0.0)
+
+    def cost(self, u: np.ndarray) -> float:
+        r = self.residuals(u)
+        return 0.5 * float(r @ r)
+
+
+@dataclass
+class FitResult:
+    p: np.ndarray
+    u: np.ndarray
+    cost: float
+    std_error: dict[str, float]
+    correlation: np.ndarray
+    at_bound: dict[str, bool]
+    identifiable: dict[str, bool]
+    n_residuals: int
+    n_eval: int
+    starts: list[float]
+
+
+def solve(
+    problem: FitProblem,
+    starts: list[np.ndarray],
+    max_nfev: int = 60,
+) -> FitResult:
+    """Run least_squares from each start (parameter vectors); keep the best."""
+    best = None
+    costs = []
+    for p0 in starts:
+        u0 = problem.u_of(p0)
+        # keep strictly inside the bounds (trf needs interior starts)
+        span = problem.ub - problem.lb
+        u0 = np.clip(u0, problem.lb + 1e-6 * span, problem.ub - 1e-6 * span)
+        res = least_squares(problem.residuals, u0, jac=problem.jacobian,
+                            bounds=(problem.lb, problem.ub), method="trf", x_scale="jac",
+                            max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
+        costs.append(float(res.cost))
+        if best is None or res.cost < best.cost:
+            best = res
+    return _summarise(problem, best, costs)
+
+
+def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
+    u = res.x
+    jac = res.jac[: -len(u)]  # data rows only: the prior must not make a parameter look identified
+    m, n = jac.shape
+    dof = max(m - n, 1)
+    s2 = 2.0 * res.cost / dof
+    # pseudo-inverse: a rank-deficient Jacobian is the non-identifiable case, not an error
+    uu, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    tol = sv.max() * 1e-9 if sv.size else 0.0
+    inv = np.where(sv > tol, 1.0 / np.maximum(sv, 1e-300) ** 2, 0.0)
+    cov_u = (vt.T * inv) @ vt * s2
+    std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
+    d = problem.dtheta_du(u)
+    theta = problem._from_u(u)
+    std_theta = std_u * d
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_u / np.outer(std_u, std_u)
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    # a direction the data do not constrain has a (near) zero singular value
+    weak = np.zeros(n, bool)
+    for k, s in enumerate(sv):
+        if s <= tol or s < 1e-6 * sv.max():
+            weak |= np.abs(vt[k]) > 0.3
+    span = problem.ub - problem.lb
+    at_bound = (u - problem.lb < 1e-4 * span) | (problem.ub - u < 1e-4 * span)
+    rel = np.where(np.abs(theta) > 0, std_theta / np.maximum(np.abs(theta), 1e-300), np.inf)
+    identifiable = ~weak & (rel < 0.5)
+    names = problem.free
+    return FitResult(
+        p=problem.p_of(u),
+        u=u,
+        cost=float(res.cost),
+        std_error={nm: float(v) for nm, v in zip(names, std_theta, strict=True)},
+        correlation=corr,
+        at_bound={nm: bool(v) for nm, v in zip(names, at_bound, strict=True)},
+        identifiable={nm: bool(v) for nm, v in zip(names, identifiable, strict=True)},
+        n_residuals=m,
+        n_eval=problem.n_eval,
+        starts=costs,
+    )

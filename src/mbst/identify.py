@@ -1,0 +1,484 @@
+"""Cascaded grey-box identification and held-out correlation (seed 000, seed 001 Table 1).
+
+1. Preprocess: the exponential filter on every channel (``fitting.prepare_test``).
+2. Pre-identify from signal processing: torsion-bar stiffness and column
+   friction from the blocked-column regression, the friction budget from the
+   half-width of the angle–torque hysteresis loop, the rack-to-angle ratio.
+3. Fit scenario by scenario (blocked column → free tie-rods → blocked rack →
+   suspended → tires on ground), each stage freeing what its scenario
+   isolates and freezing what earlier stages found; identification tests only.
+4. Correlate the fitted model on the held-out control tests.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mbst.campaign import Campaign, CampaignError
+from mbst.fitting import (
+    FitProblem,
+    PreparedTest,
+    channel_scales,
+    prepare_test,
+    simulate_twin,
+    solve,
+)
+from mbst.metrics import correlation_row
+from mbst.outputs import atomic_output_dir, write_json
+from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS, as_dict, vector_from
+
+# What each scenario isolates (eps-model.md "Scenarios"), in cascade order.
+CASCADE: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("blocked_column", (
+        "torsion_bar.stiffness_nm_per_rad",
+        "steering_column.coulomb_nm",
+        "steering_column.viscous_nms_per_rad",
+        "offset.steering_torque_nm",
+    )),
+    ("free_tie_rods", (
+        "worm_gear.stiffness_nm_per_rad",
+        "worm_gear.damping_nms_per_rad",
+        "motor.coulomb_nm",
+        "motor.viscous_nms_per_rad",
+        "rack.coulomb_n",
+        "rack.viscous_ns_per_m",
+        "offset.rack_position_m",
+        "offset.motor_angle_rad",
+        "offset.motor_current_a",
+    )),
+    ("blocked_rack", (
+        "tie_rods.stiffness_n_per_m",
+        "tie_rods.damping_ns_per_m",
+        "offset.tie_rod_force_left_n",
+        "offset.tie_rod_force_right_n",
+    )),
+    ("suspended", (
+        "tires.bearing_coulomb_n",
+        "tires.bearing_viscous_ns_per_m",
+    )),
+    ("tires_on_ground", (
+        "tires.coulomb_n",
+        "tires.viscous_ns_per_m",
+        "tires.centring_stiffness_n_per_m",
+    )),
+)
+OFFSET_CHANNEL = {
+    "offset.steering_torque_nm": "steering_torque_nm",
+    "offset.rack_position_m": "rack_position_m",
+    "offset.tie_rod_force_left_n": "tie_rod_force_left_n",
+    "offset.tie_rod_force_right_n": "tie_rod_force_right_n",
+    "offset.motor_angle_rad": "motor_angle_rad",
+    "offset.motor_current_a": "motor_current_a",
+}
+
+
+@dataclass
+class IdentifySettings:
+    """Settings of the cascade (config: ``preprocess.tau_s``, ``identify.*``)."""
+
+    tau_s: float = 0.005
+    seed: int = 0
+    multistart: int = 2
+    max_nfev: int = 40
+    decimate: int = 2
+    progress: bool = False
+
+
+@dataclass
+class StageResult:
+    scenario: str
+    tests: list[str]
+    free: list[str]
+    cost: float
+    n_residuals: int
+    starts: list[float]
+    wall_s: float
+    std_error: dict[str, float]
+    correlation: list[list[float]]
+    at_bound: dict[str, bool]
+    identifiable: dict[str, bool]
+
+
+@dataclass
+class IdentifyResult:
+    campaign: str
+    params: np.ndarray
+    stages: list[StageResult]
+    preid: dict
+    warnings: list[str]
+    correlation: pd.DataFrame
+    identification_fit: pd.DataFrame
+    wall_s: float
+    prepared: dict[str, PreparedTest] = field(repr=False, default_factory=dict)
+    twins: dict[str, dict[str, np.ndarray]] = field(repr=False, default_factory=dict)
+
+    def summary(self) -> str:
+        lines = [f"identified '{self.campaign}' in {self.wall_s:.1f} s "
+                 f"({len(self.stages)} stages)"]
+        if len(self.correlation):
+            for (test, ch), row in self.correlation.set_index(["test", "channel"]).iterrows():
+                lines.append(f"  control {test:<22} {ch:<22} FIT {row.fit_percent:6.1f} %")
+        for w in self.warnings:
+            lines.append(f"  warning: {w}")
+        return "\n".join(lines)
+
+
+# -------------------------------------------------------------------------------------
+# pre-identification from signal processing (seed 001, step 1)
+# -------------------------------------------------------------------------------------
+def _loop_half_width(pt: PreparedTest) -> float | None:
+    """Half the torque gap between the rising and falling branches near zero angle."""
+    th = pt.angle_in_rad
+    w = pt.omega_rad_per_s
+    tq = pt.measured["steering_torque_nm"]
+    amp = np.max(np.abs(th))
+    if amp <= 0:
+        return None
+    near = np.abs(th) < 0.1 * amp
+    up = near & (w > 0.2 * np.max(np.abs(w)))
+    dn = near & (w < -0.2 * np.max(np.abs(w)))
+    if up.sum() < 5 or dn.sum() < 5:
+        return None
+    # compare at equal angle: remove the stiffness slope with a joint linear fit
+    a = np.column_stack([th[up | dn], np.where(up, 1.0, -1.0)[up | dn], np.ones((up | dn).sum())])
+    coef, *_ = np.linalg.lstsq(a, tq[up | dn], rcond=None)
+    return float(abs(coef[1]))
+
+
+def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -> dict:
+    """Starting values and friction bounds from simple signal processing.
+
+    Returns a dict of named estimates with the numbers they came from; the
+    caller updates the parameter vector with ``values`` and the bounds with
+    ``upper``.
+    """
+    out: dict = {"values": {}, "upper": {}, "notes": []}
+    r = p[PARAM_INDEX["pinion_radius_m"]]
+    n_gear = p[PARAM_INDEX["worm_gear_ratio"]]
+    veps = p[PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]]
+    bc = [pt for pt in tests if pt.scenario == "blocked_column"]
+    col_fc = None
+    if bc:
+        # T = k_t·θ + F_c·tanh(ω/v_ε) + b·ω + offset, linear in the unknowns
+        rows, ys = [], []
+        for pt in bc:
+            th = pt.angle_in_rad
+            om = pt.omega_rad_per_s
+            rows.append(np.column_stack([th, np.tanh(om / veps), om, np.ones_like(th)]))
+            ys.append(pt.measured["steering_torque_nm"])
+        a, y = np.vstack(rows), np.concatenate(ys)
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        r2 = 1 - np.sum((y - a @ coef) ** 2) / np.sum((y - y.mean()) ** 2)
+        kt, col_fc, col_b, off = (float(c) for c in coef)
+        col_fc = max(col_fc, 1e-3)
+        out["values"].update({
+            "torsion_bar.stiffness_nm_per_rad": kt,
+            "steering_column.coulomb_nm": col_fc,
+            "steering_column.viscous_nms_per_rad": max(col_b, 0.0),
+            "offset.steering_torque_nm": off,
+        })
+        out["blocked_column_regression"] = {
+            "tests": [pt.id for pt in bc], "samples": len(y), "r2": float(r2),
+            "torsion_bar_stiffness_nm_per_rad": kt, "column_coulomb_nm": col_fc,
+            "column_viscous_nms_per_rad": col_b, "torque_offset_nm": off,
+        }
+    ft = [pt for pt in tests if pt.scenario == "free_tie_rods"]
+    if ft:
+        # the slowest test shows friction with the least inertia and viscous torque
+        slow = min(ft, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+        ab = _loop_half_width(slow)
+        if ab is not None:
+            budget = max(ab - (col_fc or 0.0), 0.05 * ab)
+            out["values"]["rack.coulomb_n"] = 0.7 * budget / r
+            out["values"]["motor.coulomb_nm"] = 0.3 * budget / n_gear
+            # seed 001: the loop width bounds the whole friction (2× margin for viscous/inertia)
+            out["upper"]["rack.coulomb_n"] = 2.0 * ab / r
+            out["upper"]["motor.coulomb_nm"] = 2.0 * ab / n_gear
+            out["hysteresis_free_tie_rods"] = {
+                "test": slow.id, "half_width_nm": ab, "column_share_nm": col_fc,
+                "rack_coulomb_start_n": 0.7 * budget / r,
+                "motor_coulomb_start_nm": 0.3 * budget / n_gear,
+            }
+        if "rack_position_m" in slow.measured:
+            th = slow.angle_in_rad
+            x = slow.measured["rack_position_m"]
+            slope = float(np.polyfit(th, x, 1)[0])
+            out["rack_to_angle_ratio"] = {
+                "test": slow.id, "slope_m_per_rad": slope, "pinion_radius_m": float(r),
+                "ratio_to_known_radius": slope / r,
+            }
+            if abs(slope / r - 1) > 0.15:
+                out["notes"].append(
+                    f"rack/angle slope {slope:.3e} m/rad differs by "
+                    f"{100 * (slope / r - 1):+.0f} % from the known pinion radius {r:.3e} m"
+                )
+    tg = [pt for pt in tests if pt.scenario == "tires_on_ground"]
+    if tg and ft:
+        slow3 = min(tg, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+        ab3 = _loop_half_width(slow3)
+        ab2 = out.get("hysteresis_free_tie_rods", {}).get("half_width_nm")
+        if ab3 is not None and ab2 is not None and ab3 > ab2:
+            out["values"]["tires.coulomb_n"] = (ab3 - ab2) / r
+            out["hysteresis_tires_on_ground"] = {"test": slow3.id, "half_width_nm": ab3,
+                                                 "tires_coulomb_start_n": (ab3 - ab2) / r}
+    return out
+
+
+# -------------------------------------------------------------------------------------
+# the cascade
+# -------------------------------------------------------------------------------------
+def _flatline_channels(pt: PreparedTest) -> list[str]:
+    bad = []
+    for ch, y in pt.raw.items():
+        if np.std(y) < 1e-12 or np.unique(np.round(y, 12)).size < 3:
+            bad.append(ch)
+    return bad
+
+
+def stage_channels(pt: PreparedTest) -> list[str]:
+    return [ch for ch in pt.measured]
+
+
+def run_cascade(
+    campaign: Campaign,
+    settings: IdentifySettings,
+    base: np.ndarray | None = None,
+    extra_free: dict[str, tuple[str, ...]] | None = None,
+) -> tuple[np.ndarray, list[StageResult], dict, list[str], dict[str, PreparedTest]]:
+    """Fit the identification tests stage by stage; return the parameter vector and records.
+
+    ``extra_free`` adds parameters (e.g. of an inserted effect) to the stage
+    of a scenario: discovery uses it to refit an extended model.
+    """
+    warnings: list[str] = []
+    id_specs = campaign.identification_tests()
+    if not id_specs:
+        raise CampaignError("no test has role 'identification': nothing to fit",
+                            campaign=campaign.name)
+    prepared = {s.id: prepare_test(campaign, s, settings.tau_s) for s in campaign.tests}
+    for pt in prepared.values():
+        for ch in _flatline_channels(pt):
+            warnings.append(f"test '{pt.id}': channel '{ch}' is flat-lined; it is not used")
+            pt.measured.pop(ch, None)
+    id_tests = [prepared[s.id] for s in id_specs]
+    scales = channel_scales(id_tests)
+
+    p = vector_from({k: v for k, v in campaign.known.items() if k in PARAM_INDEX},
+                    base=base if base is not None else None)
+    preid = pre_identify(campaign, id_tests, p)
+    for k, v in preid["values"].items():
+        spec = PARAM_SPECS[PARAM_INDEX[k]]
+        p[PARAM_INDEX[k]] = float(np.clip(v, spec.lower, spec.upper))
+    warnings += preid["notes"]
+
+    fixed: set[str] = set()
+    stages: list[StageResult] = []
+    carried: list[str] = []
+    rng = np.random.default_rng(settings.seed)
+    for scenario, isolates in CASCADE:
+        tests = [pt for pt in id_tests if pt.scenario == scenario]
+        wanted = list(carried) + [n for n in isolates if n not in fixed]
+        wanted += list((extra_free or {}).get(scenario, ()))
+        if not tests:
+            # a later scenario informs these too, except bearing friction (suspended only)
+            carried = [n for n in wanted
+                       if not n.startswith("offset.") and not n.startswith("tires.bearing")]
+            continue
+        channels_here = {ch for pt in tests for ch in pt.measured}
+        free = []
+        for n in dict.fromkeys(wanted):
+            if n in fixed:
+                continue
+            if n.startswith("offset.") and OFFSET_CHANNEL[n] not in channels_here:
+                continue
+            free.append(n)
+        # an offset seen for the first time here, estimated by a later stage's channels
+        for n, ch in OFFSET_CHANNEL.items():
+            if ch in channels_here and n not in fixed and n not in free:
+                free.append(n)
+        carried = []
+        if not free:
+            for pt in tests:
+                warnings.append(f"test '{pt.id}' ({scenario}) informs no free parameter")
+            continue
+        t0 = time.perf_counter()
+        prob = FitProblem(tests, {pt.id: stage_channels(pt) for pt in tests}, free, p, scales,
+                          upper=preid["upper"], decimate=settings.decimate)
+        starts = [p.copy()]
+        for _ in range(max(settings.multistart, 1) - 1):
+            q = p.copy()
+            for n in free:
+                i = PARAM_INDEX[n]
+                spec = PARAM_SPECS[i]
+                if n.startswith("offset."):
+                    continue
+                if spec.log_scale and q[i] > 0:
+                    q[i] = float(np.clip(q[i] * math.exp(rng.uniform(-0.7, 0.7)),
+                                         spec.lower, spec.upper))
+                else:
+                    q[i] = float(np.clip(q[i] + rng.uniform(-0.3, 0.3) *
+                                         (abs(q[i]) + 0.05 * (spec.upper - spec.lower)),
+                                         spec.lower, spec.upper))
+            starts.append(q)
+        fr = solve(prob, starts, max_nfev=settings.max_nfev)
+        p = fr.p
+        fixed.update(free)
+        stages.append(StageResult(
+            scenario=scenario, tests=[pt.id for pt in tests], free=free, cost=fr.cost,
+            n_residuals=fr.n_residuals, starts=fr.starts, wall_s=time.perf_counter() - t0,
+            std_error=fr.std_error, correlation=fr.correlation.round(4).tolist(),
+            at_bound=fr.at_bound, identifiable=fr.identifiable,
+        ))
+        for n in free:
+            spec = PARAM_SPECS[PARAM_INDEX[n]]
+            if fr.at_bound[n]:
+                warnings.append(
+                    f"LOUD: '{n}' ended on a bound ({p[PARAM_INDEX[n]]:.4g} {spec.unit}, "
+                    f"bounds [{spec.lower:.3g}, {prob_upper(prob, n):.3g}]) in stage {scenario}: "
+                    "the base model may lack an effect and be compensating with this parameter"
+                )
+            elif not fr.identifiable[n]:
+                warnings.append(
+                    f"'{n}' is not identifiable from the {scenario} tests given "
+                    f"(std error {fr.std_error[n]:.3g} for value {p[PARAM_INDEX[n]]:.4g})"
+                )
+        if settings.progress:
+            print(f"  stage {scenario:<16} {len(free)} params, {len(tests)} tests, "
+                  f"cost {fr.cost:.4g}, {time.perf_counter() - t0:.1f} s", flush=True)
+    for n in carried:
+        warnings.append(f"'{n}' could not be identified: no test of a scenario that informs it")
+    return p, stages, preid, warnings, prepared
+
+
+def prob_upper(prob: FitProblem, name: str) -> float:
+    j = prob.free.index(name)
+    return float(prob._from_u(prob.ub)[j])
+
+
+def correlate(
+    tests: list[PreparedTest], p: np.ndarray
+) -> tuple[pd.DataFrame, dict[str, dict[str, np.ndarray]]]:
+    """Per test and channel metrics of the model ``p`` (filtered sim vs filtered data)."""
+    rows, twins = [], {}
+    for pt in tests:
+        tw = simulate_twin(pt, p)
+        twins[pt.id] = tw
+        for ch, y in pt.measured.items():
+            rows.append({"test": pt.id, "channel": ch, **correlation_row(y, tw[ch])})
+    cols = ["test", "channel", "fit_percent", "nrmse", "pearson_r", "r2", "max_abs_error"]
+    return pd.DataFrame(rows, columns=cols), twins
+
+
+def identify(campaign: Campaign, settings: IdentifySettings | None = None) -> IdentifyResult:
+    """Run the cascade and correlate on the held-out control tests."""
+    settings = settings or IdentifySettings()
+    t0 = time.perf_counter()
+    p, stages, preid, warnings, prepared = run_cascade(campaign, settings)
+    controls = [prepared[s.id] for s in campaign.control_tests()]
+    if not controls:
+        warnings.append("the campaign has no control test: the fit cannot be correlated "
+                        "on held-out data")
+    corr, twins = correlate(controls, p)
+    id_fit, id_twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
+    twins.update(id_twins)
+    return IdentifyResult(campaign.name, p, stages, preid, warnings, corr, id_fit,
+                          time.perf_counter() - t0, prepared, twins)
+
+
+def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
+    """``params.json``: values, bounds, std errors, stage and flags of every parameter."""
+    stage_of, std, at_bound, ident = {}, {}, {}, {}
+    for st in result.stages:
+        for n in st.free:
+            stage_of[n] = st.scenario
+            std[n] = st.std_error[n]
+            at_bound[n] = st.at_bound[n]
+            ident[n] = st.identifiable[n]
+    params = {}
+    for i, spec in enumerate(PARAM_SPECS):
+        if spec.kind == "effect" and spec.name not in stage_of:
+            continue
+        params[spec.name] = {
+            "value": float(result.params[i]),
+            "unit": spec.unit,
+            "kind": spec.kind,
+            "component": spec.component,
+            "lower": spec.lower,
+            "upper": spec.upper,
+            "std_error": std.get(spec.name),
+            "stage": stage_of.get(spec.name, "known" if spec.kind == "known" else "fixed"),
+            "at_bound": at_bound.get(spec.name, False),
+            "identifiable": ident.get(spec.name),
+        }
+    return {
+        "format": "mbst-params/1",
+        "campaign": result.campaign,
+        "settings": {"tau_s": settings.tau_s, "seed": settings.seed,
+                     "multistart": settings.multistart, "max_nfev": settings.max_nfev,
+                     "decimate": settings.decimate},
+        "params": params,
+        "stages": [
+            {"scenario": st.scenario, "tests": st.tests, "free": st.free, "cost": st.cost,
+             "n_residuals": st.n_residuals, "start_costs": st.starts, "wall_s": st.wall_s,
+             "correlation_matrix": st.correlation}
+            for st in result.stages
+        ],
+        "preidentification": result.preid,
+        "warnings": result.warnings,
+        "wall_s": result.wall_s,
+        "vector": as_dict(result.params),
+    }
+
+
+def write_identify_outputs(result: IdentifyResult, out: Path, settings: IdentifySettings) -> None:
+    from mbst import plots
+
+    write_json(out / "params.json", params_record(result, settings))
+    result.correlation.to_csv(out / "correlation.csv", index=False, float_format="%.6g")
+    result.identification_fit.to_csv(out / "identification_fit.csv", index=False,
+                                     float_format="%.6g")
+    figdir = out / "figures"
+    figdir.mkdir(parents=True, exist_ok=True)
+    controls = [result.prepared[t] for t in result.correlation["test"].unique()]
+    shown = controls or [result.prepared[t] for t in result.identification_fit["test"].unique()]
+    plots.time_histories(shown, {"base": result.twins}, figdir / "time_histories.png")
+    plots.hysteresis_loops(list(result.prepared.values()), {"base": result.twins},
+                           figdir / "hysteresis.png")
+    plots.residuals(shown, {"base": result.twins}, figdir / "residuals.png")
+    (out / "identify.md").write_text(markdown_summary(result))
+
+
+def markdown_summary(result: IdentifyResult) -> str:
+    lines = [f"# Identification of `{result.campaign}`", "",
+             f"Cascade of {len(result.stages)} stages in {result.wall_s:.1f} s.", "",
+             "| stage | tests | free parameters | cost |", "|---|---|---|---|"]
+    for st in result.stages:
+        lines.append(f"| {st.scenario} | {', '.join(st.tests)} | {len(st.free)} | {st.cost:.4g} |")
+    lines += ["", "## Held-out control tests", ""]
+    if len(result.correlation):
+        lines += ["| test | channel | FIT % | NRMSE | r | R² | max abs error |",
+                  "|---|---|---|---|---|---|---|"]
+        for _, r in result.correlation.iterrows():
+            lines.append(f"| {r.test} | {r.channel} | {r.fit_percent:.1f} | {r.nrmse:.4f} | "
+                         f"{r.pearson_r:.4f} | {r.r2:.4f} | {r.max_abs_error:.4g} |")
+    else:
+        lines.append("No control test in this campaign.")
+    lines += ["", "## Warnings", ""]
+    lines += [f"- {w}" for w in result.warnings] or ["- none"]
+    return "\n".join(lines) + "\n"
+
+
+def run_identify(campaign: Campaign, out_dir: str | Path,
+                 settings: IdentifySettings | None = None) -> IdentifyResult:
+    """``mbst identify``: fit, correlate and write everything into ``out_dir`` atomically."""
+    settings = settings or IdentifySettings()
+    result = identify(campaign, settings)
+    with atomic_output_dir(out_dir) as tmp:
+        write_identify_outputs(result, tmp, settings)
+    return result

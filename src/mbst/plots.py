@@ -1,0 +1,116 @@
+"""Figures for engineers: time histories, hysteresis loops, residuals."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from mbst.fitting import PreparedTest
+
+LABELS = {
+    "steering_torque_nm": "steering torque [N·m]",
+    "rack_position_m": "rack position [mm]",
+    "tie_rod_force_left_n": "tie-rod force left [N]",
+    "tie_rod_force_right_n": "tie-rod force right [N]",
+    "motor_angle_rad": "motor angle [rad]",
+    "motor_current_a": "motor current [A]",
+}
+SCALE = {"rack_position_m": 1e3}
+MODEL_STYLE = {
+    "base": dict(color="tab:red", lw=1.1, ls="--"),
+    "extended": dict(color="tab:green", lw=1.1, ls="-"),
+    "true": dict(color="tab:gray", lw=0.9, ls=":"),
+    "sindy": dict(color="tab:purple", lw=0.9, ls="-."),
+    "neural": dict(color="tab:orange", lw=0.9, ls="-."),
+}
+
+
+def _save(fig, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
+    """Measured vs simulated (both filtered), one row per test, one column per channel."""
+    chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
+    chans = [c for c in chans if c != "tie_rod_force_right_n"] or chans
+    fig, axes = plt.subplots(len(tests), len(chans), figsize=(4.2 * len(chans), 2.6 * len(tests)),
+                             squeeze=False)
+    for i, pt in enumerate(tests):
+        for j, ch in enumerate(chans):
+            ax = axes[i][j]
+            if ch not in pt.measured:
+                ax.set_axis_off()
+                continue
+            s = SCALE.get(ch, 1.0)
+            ax.plot(pt.time_s, s * pt.measured[ch], color="black", lw=1.4, label="measured")
+            for name, twins in models.items():
+                if pt.id in twins and ch in twins[pt.id]:
+                    ax.plot(pt.time_s, s * twins[pt.id][ch], label=name, **MODEL_STYLE.get(name, {}))
+            ax.set_title(f"{pt.id} ({pt.spec.role})", fontsize=9)
+            ax.set_ylabel(LABELS[ch], fontsize=8)
+            ax.set_xlabel("time [s]", fontsize=8)
+            ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
+    """Steering angle vs steering torque (seed 000 Fig. 6/8, seed 001 Fig. 11–16)."""
+    n = len(tests)
+    cols = min(4, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.8 * cols, 3.3 * rows), squeeze=False)
+    for k, pt in enumerate(tests):
+        ax = axes[k // cols][k % cols]
+        ang = np.degrees(pt.angle_in_rad)
+        ax.plot(ang, pt.measured["steering_torque_nm"], color="black", lw=1.2, label="measured")
+        for name, twins in models.items():
+            if pt.id in twins:
+                ax.plot(ang, twins[pt.id]["steering_torque_nm"], label=name,
+                        **MODEL_STYLE.get(name, {}))
+        ax.set_title(f"{pt.id}\n{pt.scenario}, {pt.spec.role}", fontsize=8)
+        ax.set_xlabel("steering angle [deg]", fontsize=8)
+        ax.set_ylabel("steering torque [N·m]", fontsize=8)
+        ax.grid(alpha=0.3)
+    for k in range(n, rows * cols):
+        axes[k // cols][k % cols].set_axis_off()
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
+    """Measured minus simulated over time, with the steering rate to show reversals."""
+    chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
+    chans = [c for c in chans if c != "tie_rod_force_right_n"] or chans
+    fig, axes = plt.subplots(len(tests), len(chans), figsize=(4.2 * len(chans), 2.4 * len(tests)),
+                             squeeze=False)
+    for i, pt in enumerate(tests):
+        rev = np.where(np.diff(np.sign(pt.omega_rad_per_s)) != 0)[0]
+        for j, ch in enumerate(chans):
+            ax = axes[i][j]
+            if ch not in pt.measured:
+                ax.set_axis_off()
+                continue
+            s = SCALE.get(ch, 1.0)
+            for name, twins in models.items():
+                if pt.id in twins and ch in twins[pt.id]:
+                    ax.plot(pt.time_s, s * (pt.measured[ch] - twins[pt.id][ch]), label=name,
+                            **{**MODEL_STYLE.get(name, {}), "ls": "-"})
+            for r in rev[:: max(1, len(rev) // 40)]:
+                ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
+            ax.set_title(f"{pt.id}: residual", fontsize=9)
+            ax.set_ylabel(LABELS[ch], fontsize=8)
+            ax.set_xlabel("time [s] (grey: motion reversals)", fontsize=8)
+            ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
