@@ -1,3 +1,5 @@
-from mbst.cli import main
 import sys
+
+from mbst.cli import main
+
 sys.exit(main())

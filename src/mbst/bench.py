@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from mbst.campaign import TestSpec, write_campaign
-from mbst.systems import eps
+from mbst.systems import eps, get_system
 from mbst.systems.eps_channels import SYSTEM_NAME, TIE_RODS_CONNECTED
 from mbst.systems.eps_params import EFFECTS, as_dict, effect, vector_from
 
@@ -231,6 +231,7 @@ def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
 
 
 def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
+    """The chosen sensors that exist in this cut-out, plus the ones the format requires."""
     out = []
     for ch in sensors:
         if ch == "rack_position_m" and scenario == "blocked_column":
@@ -240,9 +241,10 @@ def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
         if ch.startswith("motor_") and scenario == "blocked_column":
             continue
         out.append(ch)
-    for req in ("steering_angle_rad", "steering_torque_nm"):
-        if req not in out:
-            out.insert(0, req)
+    # a campaign the reader rejects is no campaign: required channels are always logged
+    for req in get_system(SYSTEM_NAME).required_channels(scenario):
+        if req != "time_s" and req not in out:
+            out.append(req)
     return out
 
 

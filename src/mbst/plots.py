@@ -87,6 +87,18 @@ def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: P
     _save(fig, path)
 
 
+def motion_reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
+    """Indices where the steering direction changes, ignoring jitter while at rest."""
+    rate = np.asarray(rate, float)
+    big = np.abs(rate) > deadband * np.max(np.abs(rate))
+    if not big.any():
+        return np.zeros(0, int)
+    sign = np.where(big, np.sign(rate), 0.0)
+    idx = np.flatnonzero(sign)
+    changes = idx[1:][np.diff(sign[idx]) != 0]
+    return changes
+
+
 def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
     """Measured minus simulated over time, with the steering rate to show reversals."""
     chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
@@ -94,7 +106,7 @@ def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) ->
     fig, axes = plt.subplots(len(tests), len(chans), figsize=(4.2 * len(chans), 2.4 * len(tests)),
                              squeeze=False)
     for i, pt in enumerate(tests):
-        rev = np.where(np.diff(np.sign(pt.omega_rad_per_s)) != 0)[0]
+        rev = motion_reversals(pt.omega_rad_per_s)
         for j, ch in enumerate(chans):
             ax = axes[i][j]
             if ch not in pt.measured:
@@ -105,7 +117,7 @@ def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) ->
                 if pt.id in twins and ch in twins[pt.id]:
                     ax.plot(pt.time_s, s * (pt.measured[ch] - twins[pt.id][ch]), label=name,
                             **{**MODEL_STYLE.get(name, {}), "ls": "-"})
-            for r in rev[:: max(1, len(rev) // 40)]:
+            for r in rev:
                 ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
             ax.set_title(f"{pt.id}: residual", fontsize=9)
             ax.set_ylabel(LABELS[ch], fontsize=8)

@@ -425,10 +425,10 @@ def _solve_velocity(body, m_h, v_star, v_guess, x, p, scen, aux, v_rack, v_wheel
     The start is the sliding solution, or the creep velocity v_eps·atanh(·)
     when the load is below the Coulomb level, so Newton needs a few steps.
     """
-    fb = _friction_bound(body, x, p, scen, aux)
-    if fb == 0.0 and p[B_RACK + FB_EXP] == 1.0 and body == BODY_PINION:
-        # no friction on this body: the explicit update is exact
+    if body == BODY_PINION and rack_is_body(p):
+        # the rack is its own body: no friction acts on the pinion, the update is exact
         return v_star
+    fb = _friction_bound(body, x, p, scen, aux)
     lo = min(v_star, 0.0) - fb / m_h - 1e-12
     hi = max(v_star, 0.0) + fb / m_h + 1e-12
     tol = 1e-11 * (hi - lo) + 1e-300

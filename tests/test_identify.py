@@ -1,0 +1,151 @@
+"""Cascaded identification on seeded bench campaigns (issue 3 targets)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from mbst.bench import BenchRecipe, PlannedTest, run_bench
+from mbst.campaign import CampaignError, read_campaign
+from mbst.cli import main
+from mbst.identify import IdentifySettings, correlate, identify
+from mbst.plots import motion_reversals
+from mbst.systems.eps_params import PARAM_INDEX, vector_from
+
+# Parameters the demo campaign pins down tightly (rel. std error well below 1 %).
+WELL_DETERMINED = (
+    "torsion_bar.stiffness_nm_per_rad",
+    "tie_rods.stiffness_n_per_m",
+    "tires.centring_stiffness_n_per_m",
+    "tires.coulomb_n",
+    "tires.viscous_ns_per_m",
+    "offset.rack_position_m",
+    "offset.tie_rod_force_left_n",
+    "offset.tie_rod_force_right_n",
+)
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    out = tmp_path_factory.mktemp("clean")
+    camp = read_campaign(run_bench(out, BenchRecipe(effects=[], seed=1)))
+    truth = json.loads((out / "truth.json").read_text())["params"]
+    return camp, vector_from(truth), identify(camp, IdentifySettings())
+
+
+@pytest.fixture(scope="module")
+def backlash(tmp_path_factory):
+    out = tmp_path_factory.mktemp("backlash")
+    camp = read_campaign(run_bench(out, BenchRecipe(effects=["backlash:worm_gear"], seed=1)))
+    return camp, identify(camp, IdentifySettings())
+
+
+def test_clean_campaign_recovers_well_determined_parameters(clean):
+    _, truth, res = clean
+    for name in WELL_DETERMINED:
+        i = PARAM_INDEX[name]
+        assert res.params[i] == pytest.approx(truth[i], rel=0.05), name
+
+
+def test_clean_fit_reaches_the_noise_floor_on_controls(clean):
+    camp, truth, res = clean
+    controls = [res.prepared[s.id] for s in camp.control_tests()]
+    floor, _ = correlate(controls, truth)
+    merged = res.correlation.merge(floor, on=["test", "channel"], suffixes=("", "_true"))
+    assert len(merged) >= 4
+    gap = merged.fit_percent_true - merged.fit_percent
+    assert gap.max() < 0.5, merged[["test", "channel", "fit_percent", "fit_percent_true"]]
+
+
+def test_clean_fit_raises_no_bound_alarm(clean):
+    _, _, res = clean
+    assert not [w for w in res.warnings if w.startswith("LOUD")]
+
+
+def test_hidden_backlash_drops_control_fit_at_reversals(clean, backlash):
+    _, _, res_clean = clean
+    camp, res = backlash
+    key = ["test", "channel"]
+    both = res.correlation.merge(res_clean.correlation, on=key, suffixes=("", "_clean"))
+    torque = both[both.channel == "steering_torque_nm"]
+    # the free tie-rods control shows the shelf at every reversal
+    drop = (torque.fit_percent_clean - torque.fit_percent).max()
+    assert drop > 5.0, torque
+    # and the residual lives just after the motion reversals: the mesh crosses its gap
+    # when the motor's load reverses, within ~0.2 s of the steering reversal at 0.8 Hz
+    ctrl = res.prepared["s2_sine_0p8hz_ctrl"]
+    err2 = (ctrl.measured["steering_torque_nm"] - res.twins[ctrl.id]["steering_torque_nm"]) ** 2
+    after = np.zeros(len(err2), bool)
+    win = int(0.2 / ctrl.dt_s)
+    for r in motion_reversals(ctrl.omega_rad_per_s):
+        after[r: r + win] = True
+    assert after.mean() < 0.35
+    assert err2[after].sum() / err2.sum() > 0.6
+
+
+def test_missing_effect_shows_as_a_loud_bound_warning(backlash):
+    _, res = backlash
+    loud = [w for w in res.warnings if w.startswith("LOUD")]
+    assert any("worm_gear.stiffness" in w for w in loud), res.warnings
+
+
+def _small_blocked_column(tmp_path):
+    sine = {"kind": "sine", "amplitude_deg": 5, "frequency_hz": 0.5, "cycles": 2}
+    plan = [PlannedTest("a", "blocked_column", sine), PlannedTest("b", "blocked_column", sine),
+            PlannedTest("c", "blocked_column", sine, role="control")]
+    return run_bench(tmp_path / "small", BenchRecipe(effects=[], plan=plan, name="small"))
+
+
+def test_flat_lined_channel_is_named_and_not_used(tmp_path):
+    camp_dir = _small_blocked_column(tmp_path)
+    f = camp_dir / "tests" / "b.csv"
+    df = pd.read_csv(f)
+    df["steering_torque_nm"] = 0.5
+    df.to_csv(f, index=False)
+    res = identify(read_campaign(camp_dir), IdentifySettings(multistart=1))
+    assert any("'b'" in w and "steering_torque_nm" in w and "flat" in w for w in res.warnings)
+
+
+def test_no_identification_test_is_an_error(tmp_path):
+    camp_dir = _small_blocked_column(tmp_path)
+    y = (camp_dir / "campaign.yaml").read_text().replace("role: identification", "role: control")
+    (camp_dir / "campaign.yaml").write_text(y)
+    with pytest.raises(CampaignError, match="identification"):
+        identify(read_campaign(camp_dir))
+
+
+def test_cli_identify_bad_campaign_writes_nothing(tmp_path, capsys):
+    camp_dir = _small_blocked_column(tmp_path)
+    f = camp_dir / "tests" / "a.csv"
+    df = pd.read_csv(f)
+    df.loc[41, "steering_torque_nm"] = np.nan
+    df.to_csv(f, index=False)
+    out = tmp_path / "out"
+    assert main(["identify", str(camp_dir), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "'a'" in err and "steering_torque_nm" in err and "row 42" in err
+    assert not out.exists()
+
+
+def test_cli_identify_writes_params_and_correlation(tmp_path):
+    camp_dir = _small_blocked_column(tmp_path)
+    out = tmp_path / "out"
+    assert main(["identify", str(camp_dir), "--out", str(out), "--quiet"]) == 0
+    params = json.loads((out / "params.json").read_text())["params"]
+    kt = params["torsion_bar.stiffness_nm_per_rad"]
+    assert kt["stage"] == "blocked_column" and kt["std_error"] > 0
+    assert kt["value"] == pytest.approx(92.0, rel=0.02)
+    corr = pd.read_csv(out / "correlation.csv")
+    assert list(corr.columns) == ["test", "channel", "fit_percent", "nrmse", "pearson_r", "r2",
+                                  "max_abs_error"]
+    assert set(corr.test) == {"c"} and corr.fit_percent.min() > 95
+    for fig in ("hysteresis.png", "time_histories.png", "residuals.png"):
+        assert (out / "figures" / fig).stat().st_size > 10_000
+    leftovers = [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+    assert not leftovers
+    shutil.rmtree(out)
