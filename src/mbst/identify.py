@@ -162,6 +162,7 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
     r = p[PARAM_INDEX["pinion_radius_m"]]
     n_gear = p[PARAM_INDEX["worm_gear_ratio"]]
     veps = p[PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]]
+    tests = [pt for pt in tests if "steering_torque_nm" in pt.measured]
     bc = [pt for pt in tests if pt.scenario == "blocked_column"]
     col_fc = None
     if bc:

@@ -64,6 +64,7 @@ def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Pat
 
 def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
     """Steering angle vs steering torque (seed 000 Fig. 6/8, seed 001 Fig. 11–16)."""
+    tests = [pt for pt in tests if "steering_torque_nm" in pt.measured]
     n = len(tests)
     cols = min(4, n)
     rows = int(np.ceil(n / cols))
