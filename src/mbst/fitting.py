@@ -20,16 +20,8 @@ from mbst.campaign import Campaign, TestSpec
 from mbst.preprocess import exponential_filter
 from mbst.systems import eps
 from mbst.systems import eps_kernel as K
+from mbst.systems.eps_channels import OUTPUT_CHANNELS
 from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS
-
-OUTPUT_CHANNELS = (
-    "steering_torque_nm",
-    "rack_position_m",
-    "tie_rod_force_left_n",
-    "tie_rod_force_right_n",
-    "motor_angle_rad",
-    "motor_current_a",
-)
 
 
 @dataclass

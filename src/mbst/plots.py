@@ -36,12 +36,18 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
-    """Measured vs simulated (both filtered), one row per test, one column per channel."""
+def _channel_grid(tests: list[PreparedTest], row_height: float):
+    """Channels shown (right tie-rod only mirrors the left) and a tests × channels grid."""
     chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
     chans = [c for c in chans if c != "tie_rod_force_right_n"] or chans
-    fig, axes = plt.subplots(len(tests), len(chans), figsize=(4.2 * len(chans), 2.6 * len(tests)),
-                             squeeze=False)
+    fig, axes = plt.subplots(len(tests), len(chans),
+                             figsize=(4.2 * len(chans), row_height * len(tests)), squeeze=False)
+    return chans, fig, axes
+
+
+def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
+    """Measured vs simulated (both filtered), one row per test, one column per channel."""
+    chans, fig, axes = _channel_grid(tests, 2.6)
     for i, pt in enumerate(tests):
         for j, ch in enumerate(chans):
             ax = axes[i][j]
@@ -101,11 +107,8 @@ def motion_reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
 
 
 def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
-    """Measured minus simulated over time, with the steering rate to show reversals."""
-    chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
-    chans = [c for c in chans if c != "tie_rod_force_right_n"] or chans
-    fig, axes = plt.subplots(len(tests), len(chans), figsize=(4.2 * len(chans), 2.4 * len(tests)),
-                             squeeze=False)
+    """Measured minus simulated over time, with the motion reversals marked."""
+    chans, fig, axes = _channel_grid(tests, 2.4)
     for i, pt in enumerate(tests):
         rev = motion_reversals(pt.omega_rad_per_s)
         for j, ch in enumerate(chans):
