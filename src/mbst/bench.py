@@ -8,10 +8,7 @@ nothing downstream can peek.
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from mbst.campaign import TestSpec, write_campaign
+from mbst.outputs import write_json
 from mbst.systems import eps, get_system
 from mbst.systems.eps_channels import SYSTEM_NAME, TIE_RODS_CONNECTED
 from mbst.systems.eps_params import EFFECTS, as_dict, effect, vector_from
@@ -279,19 +277,7 @@ def run_bench(out_dir: str | Path, recipe: BenchRecipe, overwrite: bool = True) 
         out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=dict(KNOWN), tests=tests,
         extra={"generated_by": "mbst bench", "seed": recipe.seed}, overwrite=overwrite,
     )
-    write_json_atomic(out / "truth.json", truth_record(recipe))
+    write_json(out / "truth.json", truth_record(recipe))
     return camp
 
 
-def write_json_atomic(path: str | Path, obj: dict) -> None:
-    """Write JSON to a temporary name in the same folder, then rename."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=2, sort_keys=False)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

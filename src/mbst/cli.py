@@ -55,7 +55,12 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     from mbst.identify import IdentifySettings, run_identify
 
     camp = read_campaign(args.campaign)
-    settings = IdentifySettings(tau_s=args.tau, seed=args.seed, progress=not args.quiet)
+    if args.multistart < 1:
+        raise UsageError(f"--multistart must be at least 1, got {args.multistart}")
+    if args.tau < 0:
+        raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
+    settings = IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
+                                progress=not args.quiet)
     result = run_identify(camp, args.out, settings)
     if not args.quiet:
         print(result.summary())
@@ -65,7 +70,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from mbst.summary import write_summary
 
-    out = write_summary([Path(p) for p in args.inputs], Path(args.out))
+    try:
+        out = write_summary([Path(p) for p in args.inputs], Path(args.out))
+    except (FileNotFoundError, ValueError) as exc:
+        raise UsageError(str(exc)) from None
     if not args.quiet:
         print(f"wrote {out}")
     return 0
@@ -107,6 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
     p.add_argument("--seed", type=int, default=0, help="seed of the multi-start")
+    p.add_argument("--multistart", type=int, default=2,
+                   help="optimiser starts per cascade stage (default 2)")
     p.set_defaults(func=_cmd_identify)
 
     p = add("report", "collect per-campaign results into one table (results/summary.csv)")

@@ -39,6 +39,7 @@ def write_json(path: str | Path, obj: dict) -> Path:
         with os.fdopen(fd, "w") as fh:
             json.dump(_plain(obj), fh, indent=2)
             fh.write("\n")
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; results are for the team
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -52,6 +53,7 @@ def atomic_output_dir(out_dir: str | Path) -> Iterator[Path]:
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes it private; results are for the team
     try:
         yield tmp
         if out.exists():

@@ -1,0 +1,42 @@
+# mbst workflow: virtual bench (demo campaigns) -> identification -> summary.
+#
+#   snakemake --cores 2                   # everything in config/config.yaml
+#   snakemake --cores 2 --configfile my.yaml --replace-workflow-config
+#   snakemake --report results/report.html
+#
+# A run that was killed leaves its outputs marked incomplete; the profile in
+# profiles/default (used automatically) sets rerun-incomplete so they are redone.
+
+from snakemake.utils import min_version, validate
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+# Stops the run before anything is built, naming a misspelt or unknown key.
+validate(config, "workflow/schemas/config.schema.yaml")
+
+
+report: "workflow/report/workflow.rst"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/bench.smk"
+include: "workflow/rules/identify.smk"
+include: "workflow/rules/report.smk"
+# Next stages go here, in this order, once they exist:
+# include: "workflow/rules/discover.smk"   # results/{campaign}/discover/discovery.json
+# include: "workflow/rules/compare.smk"    # base vs extended model on the control tests
+# (and add their outputs to rule all's input below)
+
+
+rule all:
+    default_target: True
+    input:
+        expand("results/{campaign}/identify/params.json", campaign=CAMPAIGNS),
+        expand("results/{campaign}/identify/correlation.csv", campaign=CAMPAIGNS),
+        expand("results/{campaign}/identify/identify.md", campaign=CAMPAIGNS),
+        expand("results/{campaign}/identify/figures", campaign=CAMPAIGNS),
+        "results/summary.csv",

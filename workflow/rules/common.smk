@@ -1,0 +1,83 @@
+# Helpers shared by the workflow: which campaigns there are, where each one's
+# data lives, and the code version that every result depends on. Only helpers
+# live in this file (Snakemake's linter wants functions apart from the steps).
+
+import re
+import shlex
+from pathlib import Path
+
+import yaml
+
+from mbst.provenance import source_hash
+
+# --------------------------------------------------------------------------- campaigns
+
+CAMPAIGNS = list(config["campaigns"])
+BENCH_CAMPAIGNS = [c for c, entry in config["campaigns"].items() if "bench" in entry]
+PATH_CAMPAIGNS = [c for c, entry in config["campaigns"].items() if "path" in entry]
+
+# Snakemake does not track Python code imported by a command. This hash of
+# src/mbst/**/*.py is a param of every job (params.code): edit the package and
+# every result made by the old code is out of date (rerun trigger "params").
+CODE_VERSION = source_hash()
+
+
+def alternation(names):
+    """Regex matching exactly one of ``names`` (never matching when there are none)."""
+    return "|".join(re.escape(n) for n in names) or "(?!x)x"
+
+
+wildcard_constraints:
+    campaign=alternation(CAMPAIGNS),
+
+
+def campaign_entry(wildcards):
+    return config["campaigns"][wildcards.campaign]
+
+
+def bench_recipe(wildcards):
+    return campaign_entry(wildcards)["bench"]
+
+
+def campaign_dir(wildcards):
+    """The campaign folder: the user's ``path:`` or the virtual bench's output."""
+    entry = campaign_entry(wildcards)
+    if "path" in entry:
+        return str(entry["path"])
+    return f"results/{wildcards.campaign}/bench/campaign"
+
+
+def campaign_inputs(wildcards):
+    """Input files of a campaign, so that Snakemake sees a change in any of them.
+
+    A bench campaign is the directory written by the bench step. For a user campaign
+    this is its campaign.yaml plus every test file it lists (a folder's own
+    timestamp does not change when a file inside it is edited). If the yaml
+    cannot be read, only the yaml is listed and ``mbst identify`` reports the
+    problem in its own words.
+    """
+    folder = campaign_dir(wildcards)
+    if "path" not in campaign_entry(wildcards):
+        return [folder]
+    yaml_path = Path(folder) / "campaign.yaml"
+    files = [str(yaml_path)]
+    try:
+        doc = yaml.safe_load(yaml_path.read_text())
+        tests = doc.get("tests") or []
+        files += [str(Path(folder) / t["file"]) for t in tests if t.get("file")]
+    except (OSError, yaml.YAMLError, AttributeError, TypeError):
+        pass
+    return files
+
+
+def bench_effect_args(wildcards):
+    """``--effect E:C[:k=v]`` per hidden effect; ``--effect none`` for a clean rig.
+
+    (``mbst bench`` without ``--effect`` would plant the demo's backlash.)
+    """
+    effects = bench_recipe(wildcards)["effects"] or ["none"]
+    return " ".join(f"--effect {shlex.quote(str(e))}" for e in effects)
+
+
+def bench_sensor_arg(wildcards):
+    return shlex.quote(",".join(bench_recipe(wildcards)["sensors"]))
