@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from mbst.preprocess import angular_velocity
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_params import N_PARAMS, PARAM_INDEX, friction_param, vector_from
 
@@ -143,11 +144,6 @@ def initial_state(p: np.ndarray, scenario: str, theta0: float) -> np.ndarray:
     elif scenario == "suspended":
         x[K.S_XW] = xr
     return x
-
-
-def angular_velocity(time_s: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
-    """Second-order central differences of the (already filtered) angle."""
-    return np.gradient(angle_rad, time_s)
 
 
 def _codes(scenario: str, motor: str) -> tuple[int, int]:
