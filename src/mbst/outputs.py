@@ -9,6 +9,7 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TextIO
 
 
 def _plain(obj):
@@ -30,21 +31,31 @@ def _plain(obj):
     return obj
 
 
-def write_json(path: str | Path, obj: dict) -> Path:
-    """JSON (NaN/inf as null) to a temporary name in the same folder, then renamed."""
+@contextmanager
+def atomic_text(path: str | Path, newline: str | None = None) -> Iterator[TextIO]:
+    """A text handle on a temporary name in the same folder, renamed to ``path`` on success.
+
+    A reader (or a killed run) never sees half a file; on error nothing is left.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(_plain(obj), fh, indent=2)
-            fh.write("\n")
+        with os.fdopen(fd, "w", newline=newline) as fh:
+            yield fh
         os.chmod(tmp, 0o644)  # mkstemp makes it private; results are for the team
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return path
+
+
+def write_json(path: str | Path, obj: dict) -> Path:
+    """JSON (NaN/inf as null), written atomically."""
+    with atomic_text(path) as fh:
+        json.dump(_plain(obj), fh, indent=2)
+        fh.write("\n")
+    return Path(path)
 
 
 @contextmanager

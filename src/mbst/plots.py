@@ -37,32 +37,39 @@ def _save(fig, path: Path) -> None:
 
 
 def _channel_grid(tests: list[PreparedTest], row_height: float):
-    """Channels shown (right tie-rod only mirrors the left) and a tests × channels grid."""
+    """A tests × channels grid; yields (test, channel, axes, unit scale) per filled cell.
+
+    The right tie-rod channel only mirrors the left one and is not shown;
+    cells of channels a test does not have are blanked.
+    """
     chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
     chans = [c for c in chans if c != "tie_rod_force_right_n"] or chans
     fig, axes = plt.subplots(len(tests), len(chans),
                              figsize=(4.2 * len(chans), row_height * len(tests)), squeeze=False)
-    return chans, fig, axes
+
+    def cells():
+        for i, pt in enumerate(tests):
+            for j, ch in enumerate(chans):
+                if ch in pt.measured:
+                    yield pt, ch, axes[i][j], SCALE.get(ch, 1.0)
+                else:
+                    axes[i][j].set_axis_off()
+
+    return fig, axes, cells()
 
 
 def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
     """Measured vs simulated (both filtered), one row per test, one column per channel."""
-    chans, fig, axes = _channel_grid(tests, 2.6)
-    for i, pt in enumerate(tests):
-        for j, ch in enumerate(chans):
-            ax = axes[i][j]
-            if ch not in pt.measured:
-                ax.set_axis_off()
-                continue
-            s = SCALE.get(ch, 1.0)
-            ax.plot(pt.time_s, s * pt.measured[ch], color="black", lw=1.4, label="measured")
-            for name, twins in models.items():
-                if pt.id in twins and ch in twins[pt.id]:
-                    ax.plot(pt.time_s, s * twins[pt.id][ch], label=name, **MODEL_STYLE.get(name, {}))
-            ax.set_title(f"{pt.id} ({pt.spec.role})", fontsize=9)
-            ax.set_ylabel(LABELS[ch], fontsize=8)
-            ax.set_xlabel("time [s]", fontsize=8)
-            ax.grid(alpha=0.3)
+    fig, axes, cells = _channel_grid(tests, 2.6)
+    for pt, ch, ax, s in cells:
+        ax.plot(pt.time_s, s * pt.measured[ch], color="black", lw=1.4, label="measured")
+        for name, twins in models.items():
+            if pt.id in twins and ch in twins[pt.id]:
+                ax.plot(pt.time_s, s * twins[pt.id][ch], label=name, **MODEL_STYLE.get(name, {}))
+        ax.set_title(f"{pt.id} ({pt.spec.role})", fontsize=9)
+        ax.set_ylabel(LABELS[ch], fontsize=8)
+        ax.set_xlabel("time [s]", fontsize=8)
+        ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     _save(fig, path)
@@ -108,25 +115,18 @@ def motion_reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
 
 def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
     """Measured minus simulated over time, with the motion reversals marked."""
-    chans, fig, axes = _channel_grid(tests, 2.4)
-    for i, pt in enumerate(tests):
-        rev = motion_reversals(pt.omega_rad_per_s)
-        for j, ch in enumerate(chans):
-            ax = axes[i][j]
-            if ch not in pt.measured:
-                ax.set_axis_off()
-                continue
-            s = SCALE.get(ch, 1.0)
-            for name, twins in models.items():
-                if pt.id in twins and ch in twins[pt.id]:
-                    ax.plot(pt.time_s, s * (pt.measured[ch] - twins[pt.id][ch]), label=name,
-                            **{**MODEL_STYLE.get(name, {}), "ls": "-"})
-            for r in rev:
-                ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
-            ax.set_title(f"{pt.id}: residual", fontsize=9)
-            ax.set_ylabel(LABELS[ch], fontsize=8)
-            ax.set_xlabel("time [s] (grey: motion reversals)", fontsize=8)
-            ax.grid(alpha=0.3)
+    fig, axes, cells = _channel_grid(tests, 2.4)
+    for pt, ch, ax, s in cells:
+        for name, twins in models.items():
+            if pt.id in twins and ch in twins[pt.id]:
+                ax.plot(pt.time_s, s * (pt.measured[ch] - twins[pt.id][ch]), label=name,
+                        **{**MODEL_STYLE.get(name, {}), "ls": "-"})
+        for r in motion_reversals(pt.omega_rad_per_s):
+            ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
+        ax.set_title(f"{pt.id}: residual", fontsize=9)
+        ax.set_ylabel(LABELS[ch], fontsize=8)
+        ax.set_xlabel("time [s] (grey: motion reversals)", fontsize=8)
+        ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     _save(fig, path)

@@ -16,10 +16,10 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
+
+from mbst.outputs import atomic_text
 
 COLUMNS = ("campaign", "test", "channel", "model", "fit_percent")
 CORRELATION = Path("identify") / "correlation.csv"
@@ -120,24 +120,10 @@ def _format(value: object) -> object:
     return value
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _write_csv_atomic(out_csv: Path, rows: list[dict[str, object]]) -> Path:
-    out_csv.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_csv.name}.", suffix=".tmp", dir=out_csv.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=COLUMNS, lineterminator="\n")
-            writer.writeheader()
-            for row in rows:
-                writer.writerow({k: _format(v) for k, v in row.items()})
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give it the usual mode
-        os.replace(tmp, out_csv)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_text(out_csv, newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: _format(v) for k, v in row.items()})
     return out_csv
