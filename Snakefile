@@ -1,4 +1,4 @@
-# mbst workflow: virtual bench (demo campaigns) -> identification -> summary.
+# mbst workflow: virtual bench (demo campaigns) -> identification -> discovery -> summary.
 #
 #   snakemake --cores 2                   # everything in config/config.yaml
 #   snakemake --cores 2 --configfile my.yaml --replace-workflow-config
@@ -25,11 +25,8 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/bench.smk"
 include: "workflow/rules/identify.smk"
+include: "workflow/rules/discover.smk"
 include: "workflow/rules/report.smk"
-# Next stages go here, in this order, once they exist:
-# include: "workflow/rules/discover.smk"   # results/{campaign}/discover/discovery.json
-# include: "workflow/rules/compare.smk"    # base vs extended model on the control tests
-# (and add their outputs to rule all's input below)
 
 
 rule all:
@@ -39,4 +36,5 @@ rule all:
         expand("results/{campaign}/identify/correlation.csv", campaign=CAMPAIGNS),
         expand("results/{campaign}/identify/identify.md", campaign=CAMPAIGNS),
         expand("results/{campaign}/identify/figures", campaign=CAMPAIGNS),
+        discover_outputs(),
         "results/summary.csv",

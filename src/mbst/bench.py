@@ -110,6 +110,24 @@ def demo_plan() -> list[PlannedTest]:
     ]
 
 
+def compact_plan() -> list[PlannedTest]:
+    """A short campaign for quick checks: blocked column and free tie-rods, one control.
+
+    A third of the demo's duration; discovery on it searches every effect that
+    can act without tie-rods and tires.
+    """
+    sine = lambda a, f, c: {"kind": "sine", "amplitude_deg": a, "frequency_hz": f, "cycles": c}  # noqa: E731
+    return [
+        PlannedTest("s1_sine_0p5hz", "blocked_column", sine(5, 0.5, 3)),
+        PlannedTest("s1_sine_1hz", "blocked_column", sine(5, 1.0, 4)),
+        PlannedTest("s2_sine_0p25hz", "free_tie_rods", sine(30, 0.25, 2)),
+        PlannedTest("s2_sine_0p8hz", "free_tie_rods", sine(30, 0.8, 4)),
+        PlannedTest("s2_ramp", "free_tie_rods",
+                    {"kind": "ramp", "amplitude_deg": 40, "rate_deg_per_s": 20}),
+        PlannedTest("s2_sine_0p8hz_ctrl", "free_tie_rods", sine(45, 0.8, 4), role="control"),
+    ]
+
+
 def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Time and steering angle (rad) of an input profile, starting and ending at rest."""
     kind = spec["kind"]

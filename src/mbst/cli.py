@@ -67,6 +67,27 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_discover(args: argparse.Namespace) -> int:
+    from mbst.campaign import read_campaign
+    from mbst.discovery.pipeline import DiscoverSettings, run_discover
+    from mbst.identify import IdentifySettings
+
+    camp = read_campaign(args.campaign)
+    if args.max_effects < 0:
+        raise UsageError(f"--max-effects must be ≥ 0, got {args.max_effects}")
+    if not 0 < args.min_gain < 1:
+        raise UsageError(f"--min-gain must be in (0, 1), got {args.min_gain}")
+    settings = DiscoverSettings(
+        identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart),
+        max_effects=args.max_effects, min_relative_gain=args.min_gain,
+        sparse=not args.no_sparse, neural=not args.no_neural, progress=not args.quiet,
+    )
+    result = run_discover(camp, args.out, settings)
+    if not args.quiet:
+        print(result.summary())
+    return 0
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from mbst.summary import write_summary
 
@@ -118,6 +139,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--multistart", type=int, default=2,
                    help="optimiser starts per cascade stage (default 2)")
     p.set_defaults(func=_cmd_identify)
+
+    p = add("discover", "find what the base model lacks, name it, extend the model and "
+            "compare model families on the control tests")
+    p.add_argument("campaign")
+    p.add_argument("--out", required=True)
+    p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
+    p.add_argument("--seed", type=int, default=0, help="seed of multi-starts and training")
+    p.add_argument("--multistart", type=int, default=2, help="starts per cascade stage")
+    p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
+    p.add_argument("--min-gain", type=float, default=0.10,
+                   help="share of a stage's residual cost an effect must remove (default 0.10)")
+    p.add_argument("--no-sparse", action="store_true", help="skip the sparse regression")
+    p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
+    p.set_defaults(func=_cmd_discover)
 
     p = add("report", "collect per-campaign results into one table (results/summary.csv)")
     p.add_argument("kind", choices=["summary"], help="what to write")

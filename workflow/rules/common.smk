@@ -81,3 +81,21 @@ def bench_effect_args(wildcards):
 
 def bench_sensor_arg(wildcards):
     return shlex.quote(",".join(bench_recipe(wildcards)["sensors"]))
+
+
+def discover_skip_args(wildcards):
+    """Flags that switch off the optional evidence families of discovery."""
+    flags = []
+    if not config["discover"]["sparse_regression"]:
+        flags.append("--no-sparse")
+    if not config["discover"]["neural_residual"]:
+        flags.append("--no-neural")
+    return " ".join(flags)
+
+
+def discover_outputs():
+    """Discovery results requested by ``rule all`` (none when discovery is off)."""
+    if not config["discover"]["enabled"]:
+        return []
+    return expand("results/{campaign}/discover/{f}", campaign=CAMPAIGNS,
+                  f=["discovery.json", "comparison.csv", "discovery.md", "figures"])

@@ -1,11 +1,11 @@
-# Summary: one table of FIT % per campaign, test, channel and model.
-# When discover.smk lands, add its discovery.json files to the input here so
-# that the "extended" rows are collected too (mbst.summary already reads them).
+# Summary: one table of FIT % per campaign, test, channel and model
+# (the "extended" rows come from discovery.json when discovery is on).
 
 
 rule summary:
     input:
         expand("results/{campaign}/identify/correlation.csv", campaign=CAMPAIGNS),
+        [f for f in discover_outputs() if f.endswith("discovery.json")],
     output:
         report(
             "results/summary.csv",
@@ -17,7 +17,9 @@ rule summary:
         "logs/summary.log",
     params:
         result_dirs=lambda wildcards, input: [
-            os.path.dirname(os.path.dirname(f)) for f in input
+            os.path.dirname(os.path.dirname(f))
+            for f in input
+            if f.endswith("correlation.csv")
         ],
         code=CODE_VERSION,
     conda:

@@ -1,0 +1,59 @@
+"""Wall time and outcome of discovery per campaign; calibration of the acceptance margin.
+
+Run: ``python benchmarks/discover.py`` (``--quick`` for the compact plan only).
+Target: ≤ 3 min per demo campaign on a 2-core machine. The table also prints,
+for clean campaigns, the largest share of a stage's residual cost any catalogue
+candidate removes: the acceptance margin (``discover.min_relative_gain``, 0.10)
+must sit above it.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from mbst.bench import BenchRecipe, compact_plan, run_bench
+from mbst.campaign import read_campaign
+from mbst.discovery.pipeline import DiscoverSettings, discover
+
+CASES = (
+    ("demo: worm-gear backlash", ["backlash:worm_gear"], 0, None),
+    ("demo: clean", [], 0, None),
+    ("compact: clean seed 1", [], 1, compact_plan),
+    ("compact: clean seed 2", [], 2, compact_plan),
+    ("compact: torsion-bar limit stop", ["stiffness_limit_stop:torsion_bar"], 1, compact_plan),
+)
+
+
+def main() -> None:
+    quick = "--quick" in sys.argv
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (label, effects, seed, plan) in enumerate(CASES):
+            if quick and plan is None:
+                continue
+            recipe = BenchRecipe(effects=effects, seed=seed, plan=plan() if plan else None)
+            camp = read_campaign(run_bench(Path(tmp) / str(i), recipe))
+            full = plan is None
+            t0 = time.perf_counter()
+            res = discover(camp, DiscoverSettings(sparse=full, neural=full))
+            wall = time.perf_counter() - t0
+            found = ", ".join(f"{f.effect}:{f.component}" for f in res.findings) or "none"
+            best_clean = max((c["relative_gain"] for r in res.rounds for c in r["candidates"]),
+                             default=0.0) if not effects else float("nan")
+            means = res.comparison.groupby("model")["fit_percent"].mean()
+            rows.append((label, wall, found, best_clean, means.get("base", float("nan")),
+                         means.get("extended", float("nan")), means.get("true", float("nan"))))
+    print(f"{'campaign':<34} {'wall s':>7}  {'clean max gain':>14}  {'FIT base/ext/true':>19}  "
+          "findings")
+    for label, wall, found, best, b, e, t in rows:
+        print(f"{label:<34} {wall:7.1f}  {best:14.3f}  {b:5.1f} /{e:5.1f} /{t:5.1f}  {found}")
+    demo = [r for r in rows if r[0].startswith("demo: worm")]
+    if demo:
+        print(f"discover: {demo[0][1]:.1f} s per demo campaign")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,132 @@
+"""Figures of a discovery run: what the base model gets wrong and what the extension fixes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mbst import plots
+from mbst.plots import LABELS, MODEL_STYLE, SCALE, motion_reversals, plt
+
+
+def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
+    """Measured vs base vs extended around the reversal where the base model errs most."""
+    controls = [result.base.prepared[t] for t in dict.fromkeys(result.comparison.test)]
+    if not controls:
+        controls = [result.base.prepared[r.id] for r in result.residual_tests[:2]]
+    chans = [c for c in ("steering_torque_nm", "rack_position_m")
+             if any(c in pt.measured for pt in controls)]
+    fig, axes = plt.subplots(len(controls), len(chans), figsize=(5.2 * len(chans),
+                             2.9 * len(controls)), squeeze=False)
+    models = {m: tw for m, tw in result.twins.items() if m in ("base", "extended", "true")}
+    for i, pt in enumerate(controls):
+        base_tw = result.twins.get("base", {}).get(pt.id) or result.base.twins[pt.id]
+        err = np.abs(pt.measured["steering_torque_nm"] - base_tw["steering_torque_nm"])
+        revs = motion_reversals(pt.omega_rad_per_s)
+        win = int(round(half_window_s / pt.dt_s))
+        if len(revs):
+            worst = max(revs, key=lambda r: err[r: r + win].max(initial=0.0))
+        else:
+            worst = int(np.argmax(err))
+        lo, hi = max(worst - win, 0), min(worst + 2 * win, len(pt.time_s))
+        sl = slice(lo, hi)
+        for j, ch in enumerate(chans):
+            ax = axes[i][j]
+            if ch not in pt.measured:
+                ax.set_axis_off()
+                continue
+            s = SCALE.get(ch, 1.0)
+            ax.plot(pt.time_s[sl], s * pt.measured[ch][sl], color="black", lw=1.6,
+                    label="measured")
+            for name, tw in models.items():
+                if pt.id in tw and ch in tw[pt.id]:
+                    ax.plot(pt.time_s[sl], s * tw[pt.id][ch][sl], label=name,
+                            **MODEL_STYLE.get(name, {}))
+            ax.axvline(pt.time_s[worst], color="0.6", lw=0.8, ls=":")
+            ax.set_title(f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", fontsize=9)
+            ax.set_ylabel(LABELS[ch], fontsize=8)
+            ax.set_xlabel("time [s]", fontsize=8)
+            ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    plots._save(fig, path)
+
+
+def structure_bars(result, path: Path) -> None:
+    """Share of the stage's residual cost each catalogue candidate removes, per round."""
+    rounds = [r for r in result.rounds if r["candidates"]]
+    if not rounds:
+        fig, ax = plt.subplots(figsize=(6, 2))
+        ax.text(0.5, 0.5, "no candidate could be tested", ha="center", va="center")
+        ax.set_axis_off()
+        plots._save(fig, path)
+        return
+    n = max(len(r["candidates"]) for r in rounds)
+    fig, axes = plt.subplots(1, len(rounds), figsize=(6.5 * len(rounds), 0.28 * n + 1.6),
+                             squeeze=False)
+    for ax, r in zip(axes[0], rounds, strict=True):
+        cands = r["candidates"]
+        gains = [100 * max(c["relative_gain"], -5.0 / 100) for c in cands]
+        colors = ["tab:green" if c["key"] == r["accepted"] else "tab:blue" for c in cands]
+        y = np.arange(len(cands))[::-1]
+        ax.barh(y, gains, color=colors)
+        ax.set_yticks(y, [f"{c['key']} ({c['stage']})" for c in cands], fontsize=7)
+        ax.axvline(100 * result_margin(result), color="tab:red", ls="--", lw=1,
+                   label="acceptance margin")
+        ax.set_xlabel("residual cost removed in its stage [%]", fontsize=8)
+        acc = r["accepted"] or "none"
+        ax.set_title(f"round {r['round']}: accepted {acc}", fontsize=9)
+        ax.grid(axis="x", alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    plots._save(fig, path)
+
+
+def result_margin(result) -> float:
+    return float(result.settings.min_relative_gain)
+
+
+def comparison_bars(result, path: Path) -> None:
+    """Control FIT % per model family, per control test and channel."""
+    df = result.comparison
+    if df.empty:
+        return
+    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent",
+                          sort=False)
+    models = list(dict.fromkeys(df.model))
+    fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 3.6))
+    x = np.arange(len(wide))
+    w = 0.8 / len(models)
+    for k, m in enumerate(models):
+        vals = np.clip(wide[m].to_numpy(float), 0, 100)
+        ax.bar(x + k * w - 0.4 + w / 2, vals, w, label=m,
+               color=MODEL_STYLE.get(m, {}).get("color"))
+    ax.set_xticks(x, [f"{t}\n{c}" for t, c in wide.index], fontsize=6)
+    ax.set_ylabel("control FIT [%] (clipped to 0–100)", fontsize=8)
+    lo = np.nanmin(np.clip(wide.to_numpy(float), 0, 100))
+    ax.set_ylim(max(0.0, lo - 5), 100.5)
+    ax.legend(fontsize=7, ncol=len(models))
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_title("held-out control tests: FIT % of each model family", fontsize=9)
+    fig.tight_layout()
+    plots._save(fig, path)
+
+
+def write_all(result, figdir: Path) -> None:
+    prepared = result.base.prepared
+    controls = [prepared[t] for t in dict.fromkeys(result.comparison.test)]
+    models = {m: tw for m, tw in result.twins.items()}
+    shown = controls or [prepared[r.id] for r in result.residual_tests]
+    reversal_zoom(result, figdir / "reversal_zoom.png")
+    structure_bars(result, figdir / "structure_test.png")
+    comparison_bars(result, figdir / "comparison.png")
+    plots.time_histories(shown, models, figdir / "time_histories.png")
+    plots.hysteresis_loops(shown, {m: models[m] for m in ("base", "extended") if m in models},
+                           figdir / "hysteresis.png")
+    plots.residuals(shown, {m: models[m] for m in ("base", "extended") if m in models},
+                    figdir / "residuals.png")
+    if result.neural_model is not None:
+        from mbst.discovery.neural import plot_learned
+
+        plot_learned(result.neural_model, result.residual_tests, figdir / "neural_learned.png")

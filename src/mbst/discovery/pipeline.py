@@ -1,0 +1,551 @@
+"""Discovery: show what the simulation gets wrong, name the cause, extend, measure the gain.
+
+``discover`` runs, on the identification tests only:
+
+1. the base cascade (``identify``) and the residual analysis;
+2. rounds of the structure test (``structure.structure_test``): the best
+   catalogue candidate is accepted only if it removes at least
+   ``min_relative_gain`` of its stage's residual cost, lowers the Akaike
+   criterion (effective sample count) by ``min_aic_drop``, wins
+   leave-one-test-out cross-validation in most folds, and still lowers the
+   identification cost after the whole cascade is refitted with it;
+3. the sparse regression and the neural residual as independent evidence.
+
+The held-out control tests are touched only afterwards, to measure the
+gain of every model family side by side.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mbst.campaign import Campaign
+from mbst.discovery.data import TestResidual, residual_data
+from mbst.discovery.residuals import dominant_regions, residual_locations
+from mbst.discovery.structure import (
+    STAGE_FREE,
+    CandidateScore,
+    StageScorer,
+    compensating_parameters,
+    effective_samples,
+    structure_test,
+)
+from mbst.fitting import PreparedTest, _twins_batch, channel_scales, solve
+from mbst.identify import IdentifyResult, IdentifySettings, correlate, run_cascade
+from mbst.metrics import fit_percent
+from mbst.outputs import atomic_output_dir, write_json
+from mbst.systems.eps_params import EFFECTS, PARAM_INDEX, PARAM_SPECS, as_dict, vector_from
+
+FORMAT = "mbst-discovery/1"
+
+
+@dataclass
+class DiscoverSettings:
+    """Settings of discovery (config: ``discover.*``).
+
+    ``min_relative_gain`` and ``min_aic_drop`` are the margin that noise
+    alone does not give: on clean bench campaigns the best candidate removes
+    at most ~4 % of its stage's cost (``benchmarks/discover.py`` prints it).
+    """
+
+    identify: IdentifySettings = field(default_factory=IdentifySettings)
+    max_effects: int = 2
+    min_relative_gain: float = 0.10
+    min_aic_drop: float = 100.0
+    refine: int = 5
+    cv_nfev: int = 8
+    sparse: bool = True
+    neural: bool = True
+    neural_iterations: int | None = None
+    progress: bool = False
+
+
+@dataclass
+class Finding:
+    """One named effect (discovery.json ``findings`` entry)."""
+
+    effect: str
+    component: str
+    parameters: dict[str, float]
+    confidence: float
+    evidence: str
+    stage: str
+    relative_gain: float
+    aic_delta: float
+    cv: dict
+
+    def record(self) -> dict:
+        return {"effect": self.effect, "component": self.component,
+                "parameters": self.parameters, "confidence": round(self.confidence, 4),
+                "evidence": self.evidence, "stage": self.stage,
+                "relative_gain": self.relative_gain, "aic_delta": self.aic_delta,
+                "cross_validation": self.cv}
+
+
+@dataclass
+class DiscoveryResult:
+    campaign: str
+    base: IdentifyResult
+    extended_params: np.ndarray
+    findings: list[Finding]
+    rounds: list[dict]
+    locations: list[dict]
+    sparse: dict | None
+    neural: dict | None
+    comparison: pd.DataFrame
+    gain: dict
+    wall_s: float
+    timings: dict
+    twins: dict[str, dict[str, dict[str, np.ndarray]]] = field(repr=False, default_factory=dict)
+    neural_model: object = field(repr=False, default=None)
+    residual_tests: list[TestResidual] = field(repr=False, default_factory=list)
+    settings: DiscoverSettings = field(repr=False, default_factory=DiscoverSettings)
+
+    def summary(self) -> str:
+        lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
+        if not self.findings:
+            lines.append("  no finding: the base model explains the identification tests down "
+                         "to the noise floor")
+        for f in self.findings:
+            pars = ", ".join(f"{k}={v:.4g}" for k, v in f.parameters.items())
+            lines.append(f"  found {f.effect} in {f.component} ({pars}), confidence "
+                         f"{f.confidence:.2f}")
+        means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
+        for m, v in means.items():
+            lines.append(f"  control FIT mean {m:<9} {v:6.1f} %")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------
+def total_cost(tests: list[PreparedTest], p: np.ndarray, scales: dict[str, float],
+               decimate: int = 2) -> tuple[float, list[np.ndarray]]:
+    """Weighted data cost of ``p`` on ``tests`` (as the cascade weighs it) and the residuals."""
+    cost, res = 0.0, []
+    for pt in tests:
+        tw = _twins_batch(pt, p[None])[0]
+        n = len(pt.time_s[::decimate])
+        for ch in pt.measured:
+            r = (tw[ch] - pt.measured[ch])[::decimate]
+            res.append(r)
+            w = 1.0 / (scales[ch] * math.sqrt(n))
+            cost += 0.5 * float(np.sum((r * w) ** 2))
+    return cost, res
+
+
+def akaike_weight(best: CandidateScore, scores: list[CandidateScore]) -> float:
+    """Akaike weight of ``best`` among the candidates scored on the same stage.
+
+    (Differences are comparable only on the same data.)
+    """
+    same = [s for s in scores if s.stage == best.stage]
+    a = np.array([s.aic_delta for s in same], float)
+    w = np.exp(-0.5 * (a - a.min()))
+    return float(w[same.index(best)] / w.sum())
+
+
+def cross_validate(scorer: StageScorer, cand: CandidateScore, nfev: int) -> dict:
+    """Leave one test of the stage out: refit base and extension on the rest, score it."""
+    tests = scorer.tests
+    if len(tests) < 2:
+        return {"folds": 0, "wins": 0, "held_out_gain": None,
+                "note": f"the {scorer.stage} stage has one identification test: no fold"}
+    p_base, _ = scorer.base_refit()
+    spec = EFFECTS[cand.key]
+    wins, cb_sum, ce_sum, folds = 0, 0.0, 0.0, []
+    for j, held in enumerate(tests):
+        train = [pt for k, pt in enumerate(tests) if k != j]
+        pb = solve(scorer.problem(scorer.stage_free, p_base, train), [p_base], nfev).p
+        pe = solve(scorer.problem(list(spec.free) + scorer.stage_free, cand.params, train),
+                   [cand.params], nfev).p
+        cb, ce = scorer.costs(np.stack([pb, pe]), [held])[:, 0]
+        wins += int(ce < cb)
+        cb_sum += cb
+        ce_sum += ce
+        folds.append({"held_out": held.id, "cost_base": float(cb), "cost_extended": float(ce)})
+    return {"folds": len(tests), "wins": wins, "held_out_gain": 1.0 - ce_sum / cb_sum,
+            "per_fold": folds}
+
+
+def _score_record(s: CandidateScore) -> dict:
+    return {"key": s.key, "effect": s.effect, "component": s.component, "stage": s.stage,
+            "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
+            "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2)}
+
+
+def _truth_params(campaign: Campaign) -> np.ndarray | None:
+    """The bench's ground truth, when the campaign came from ``mbst bench``."""
+    path = Path(campaign.path).parent / "truth.json"
+    if not path.is_file():
+        return None
+    try:
+        return vector_from(json.loads(path.read_text())["params"])
+    except (KeyError, ValueError, json.JSONDecodeError):
+        return None
+
+
+def _evidence(best: CandidateScore, runner: CandidateScore | None, cv: dict,
+              regions: list[tuple[str, float]], sparse: dict | None,
+              neural: dict | None) -> str:
+    parts = [
+        f"structure test: inserting {best.effect} in {best.component} and refitting the "
+        f"{best.stage} stage removed {100 * best.relative_gain:.1f} % of its residual cost "
+        f"(ΔAIC {best.aic_delta:.0f} with {best.n_eff:.0f} effective samples)",
+    ]
+    if runner is not None:
+        parts.append(f"runner-up {runner.key} removed {100 * runner.relative_gain:.1f} % "
+                     f"(ΔAIC {runner.aic_delta:.0f})")
+    if cv.get("folds"):
+        parts.append(f"leave-one-test-out: better on {cv['wins']}/{cv['folds']} held-out tests, "
+                     f"held-out cost −{100 * cv['held_out_gain']:.1f} %")
+    else:
+        parts.append(cv.get("note", "no cross-validation"))
+    if regions:
+        parts.append("residual concentrated in " + ", ".join(
+            f"{k} ({v:.1f}× its share of time)" for k, v in regions[:2]))
+    for name, ev in (("sparse regression", sparse), ("neural residual", neural)):
+        if not ev or not ev.get("ranking"):
+            continue
+        keys = [k for k, _ in ev["ranking"]]
+        rank = keys.index(best.key) + 1 if best.key in keys else None
+        top = ev["ranking"][0]
+        txt = f"{name} ranks {top[0]} first ({100 * top[1]:.0f} % of residual variance)"
+        txt += f", this effect #{rank}" if rank and rank > 1 else (
+            "" if rank == 1 else ", this effect not among its terms")
+        parts.append(txt)
+    return "; ".join(parts)
+
+
+# --------------------------------------------------------------------------------------
+# the loop
+# --------------------------------------------------------------------------------------
+def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> DiscoveryResult:
+    """Find, name and insert the effects the base model lacks; compare model families."""
+    settings = settings or DiscoverSettings()
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    ids_settings = settings.identify
+    t0 = time.perf_counter()
+    base = _identify_base(campaign, ids_settings)
+    timings["identify_s"] = time.perf_counter() - t0
+    prepared = base.prepared
+    id_specs = campaign.identification_tests()
+    ids = [prepared[s.id] for s in id_specs]
+    scales = channel_scales(ids)
+    id_res = [residual_data(prepared[s.id], base.params, base.twins.get(s.id)) for s in id_specs]
+    locations = residual_locations(id_res)
+    regions = dominant_regions(locations)
+
+    stage_params = [n for _, names in STAGE_FREE.items() for n in names]
+    p = base.params.copy()
+    cost_cur, res_base = total_cost(ids, p, scales, ids_settings.decimate)
+    n_eff_all = effective_samples(res_base)
+    cost_base_all = cost_cur
+    accepted: list[str] = []
+    extra_free: dict[str, tuple[str, ...]] = {}
+    rounds: list[dict] = []
+    pending: list[tuple[CandidateScore, CandidateScore | None, dict, float]] = []
+    t0 = time.perf_counter()
+    bar = _progress_bar(settings.progress)
+    shortlist: set[str] | None = None
+    for rnd in range(settings.max_effects):
+        reset = compensating_parameters(p, stage_params)
+
+        def tick(phase: str, sc: CandidateScore, _bar=bar, _rnd=rnd) -> None:
+            if _bar is not None:
+                _bar.set_description(f"round {_rnd + 1} {phase} {sc.key}")
+                _bar.update(1 if phase == "screen" else 0)
+
+        if bar is not None:
+            bar.reset(total=len(shortlist) if shortlist is not None else len(EFFECTS))
+        scores = structure_test(ids, p, scales, base.preid["upper"], exclude=set(accepted),
+                                decimate=ids_settings.decimate, refine=settings.refine,
+                                reset=reset, only=shortlist, progress=tick)
+        rec = {"round": rnd + 1, "candidates": [_score_record(s) for s in scores],
+               "accepted": None, "reason": ""}
+        rounds.append(rec)
+        if not scores:
+            rec["reason"] = ("no candidate left with evidence from the first round"
+                             if shortlist is not None else
+                             "no candidate can act in the scenarios tested")
+            break
+        best = scores[0]
+        runner = scores[1] if len(scores) > 1 else None
+        if best.relative_gain < settings.min_relative_gain or \
+                best.aic_delta > -settings.min_aic_drop:
+            rec["reason"] = (
+                f"best candidate {best.key} removes {100 * best.relative_gain:.1f} % of the "
+                f"{best.stage} cost (ΔAIC {best.aic_delta:.0f}); the margin is "
+                f"{100 * settings.min_relative_gain:.0f} % and ΔAIC ≤ −{settings.min_aic_drop:.0f}"
+                ": the residual is at the noise floor of the catalogue")
+            break
+        scorer = StageScorer([pt for pt in ids if pt.scenario == best.stage], best.stage, p,
+                             scales, base.preid["upper"], ids_settings.decimate)
+        scorer._base_fit = (p, best.cost_base)
+        cv = cross_validate(scorer, best, settings.cv_nfev)
+        if cv["folds"] and cv["wins"] * 2 < cv["folds"]:
+            rec["reason"] = (f"{best.key} lost leave-one-test-out cross-validation "
+                             f"({cv['wins']}/{cv['folds']})")
+            break
+        # extension: the whole cascade refitted with the effect free in its stage
+        spec = EFFECTS[best.key]
+        trial_free = dict(extra_free)
+        trial_free[best.stage] = tuple(trial_free.get(best.stage, ())) + spec.free
+        p_ext, _, _, _, _ = run_cascade(campaign, ids_settings, base=best.params,
+                                        extra_free=trial_free)
+        cost_ext, _ = total_cost(ids, p_ext, scales, ids_settings.decimate)
+        if cost_ext >= cost_cur:
+            rec["reason"] = (f"{best.key} won its stage but the refitted cascade did not lower "
+                             f"the identification cost ({cost_ext:.4g} ≥ {cost_cur:.4g})")
+            break
+        rec["accepted"] = best.key
+        rec["cross_validation"] = cv
+        # later rounds rescore only what showed evidence here: an effect that did not
+        # help the base model does not start to once a different one is added
+        shortlist = {s.key for s in scores[1:]
+                     if s.relative_gain >= 0.5 * settings.min_relative_gain
+                     or s.aic_delta <= -settings.min_aic_drop}
+        rec["identification_cost"] = {"before": cost_cur, "after": cost_ext}
+        accepted.append(best.key)
+        extra_free = trial_free
+        p, cost_cur = p_ext, cost_ext
+        pending.append((best, runner, cv, akaike_weight(best, scores)))
+    if bar is not None:
+        bar.close()
+    timings["structure_s"] = time.perf_counter() - t0
+
+    # independent evidence from the regressions (identification tests only)
+    sparse_ev = neural_ev = None
+    neural_model = None
+    if settings.sparse:
+        t0 = time.perf_counter()
+        sparse_ev = _sparse_evidence(id_res)
+        timings["sparse_s"] = time.perf_counter() - t0
+    if settings.neural:
+        t0 = time.perf_counter()
+        neural_model, neural_ev = _neural_evidence(id_res, settings)
+        timings["neural_s"] = time.perf_counter() - t0
+
+    findings = []
+    for best, runner, cv, weight in pending:
+        spec = EFFECTS[best.key]
+        params = {h: float(p[PARAM_INDEX[n]]) for h, n in spec.headline.items()}
+        cv_frac = cv["wins"] / cv["folds"] if cv.get("folds") else 1.0
+        findings.append(Finding(
+            effect=spec.effect, component=spec.component, parameters=params,
+            confidence=weight * cv_frac,
+            evidence=_evidence(best, runner, cv, regions, sparse_ev, neural_ev),
+            stage=best.stage, relative_gain=best.relative_gain, aic_delta=best.aic_delta, cv=cv,
+        ))
+
+    # the held-out control tests measure the gain; they decided nothing above
+    t0 = time.perf_counter()
+    comparison, twins = _compare(campaign, base, p, id_res, settings, neural_model)
+    timings["compare_s"] = time.perf_counter() - t0
+    k_added = sum(len(EFFECTS[k].free) for k in accepted)
+    gain = {
+        "control_fit_percent_mean": _mean_gain(comparison),
+        "aic_delta": float(n_eff_all * math.log(cost_cur / cost_base_all) + 2 * k_added)
+        if accepted and cost_base_all > 0 else 0.0,
+        "identification_cost_base": cost_base_all,
+        "identification_cost_extended": cost_cur,
+        "effective_samples": n_eff_all,
+    }
+    return DiscoveryResult(
+        campaign=campaign.name, base=base, extended_params=p, findings=findings, rounds=rounds,
+        locations=locations, sparse=sparse_ev, neural=neural_ev, comparison=comparison,
+        gain=gain, wall_s=time.perf_counter() - t_start, timings=timings, twins=twins,
+        neural_model=neural_model, residual_tests=id_res, settings=settings,
+    )
+
+
+def _identify_base(campaign: Campaign, settings: IdentifySettings) -> IdentifyResult:
+    """The base cascade on the identification tests; controls are not simulated here."""
+    t0 = time.perf_counter()
+    p, stages, preid, warnings, prepared = run_cascade(campaign, settings)
+    id_fit, twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
+    return IdentifyResult(campaign.name, p, stages, preid, warnings, id_fit.iloc[0:0], id_fit,
+                          time.perf_counter() - t0, prepared, twins)
+
+
+def _progress_bar(enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=len(EFFECTS), unit="candidate", leave=False)
+
+
+def _sparse_evidence(id_res: list[TestResidual]) -> dict | None:
+    from mbst.discovery.sindy import residual_regression
+
+    try:
+        ev = residual_regression(id_res)
+    except Exception as exc:  # evidence only: a failure must not sink the discovery
+        return {"error": f"{type(exc).__name__}: {exc}", "ranking": []}
+    d = ev.to_dict()
+    d["ranking"] = [list(x) for x in ev.ranking]
+    return d
+
+
+def _neural_evidence(id_res: list[TestResidual], settings: DiscoverSettings):
+    from mbst.discovery import neural
+
+    kw = {"seed": settings.identify.seed}
+    if settings.neural_iterations is not None:
+        kw["iterations"] = settings.neural_iterations
+    model = neural.NeuralResidual(**kw).fit(id_res)
+    ev = neural.explain(model, id_res)
+    ev["train_seconds"] = getattr(model, "train_seconds", None)
+    return model, ev
+
+
+def _compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
+             id_res: list[TestResidual], settings: DiscoverSettings, neural_model
+             ) -> tuple[pd.DataFrame, dict]:
+    """Control FIT % of every model family, one row per test, channel and model."""
+    controls = [base.prepared[s.id] for s in campaign.control_tests()]
+    rows: list[dict] = []
+    twins: dict[str, dict] = {}
+
+    def add(model: str, tw: dict[str, dict[str, np.ndarray]]) -> None:
+        twins[model] = tw
+        for pt in controls:
+            for ch, y in pt.measured.items():
+                yh = tw.get(pt.id, {}).get(ch)
+                fp = fit_percent(y, yh) if yh is not None and np.all(np.isfinite(yh)) \
+                    else float("nan")
+                rows.append({"test": pt.id, "channel": ch, "model": model, "fit_percent": fp})
+
+    base.correlation, base_tw = correlate(controls, base.params)
+    base.twins.update(base_tw)
+    add("base", base_tw)
+    _, ext_tw = correlate(controls, p_ext)
+    add("extended", ext_tw)
+    ctrl_res = [residual_data(pt, base.params, base.twins[pt.id]) for pt in controls]
+    if settings.sparse:
+        from mbst.discovery.sindy import SindyControlModel
+
+        sm = SindyControlModel().fit(id_res)
+        add("sindy", {r.id: sm.predict(r) for r in ctrl_res})
+    if neural_model is not None:
+        add("neural", {r.id: neural_model.predict(r) for r in ctrl_res})
+    truth = _truth_params(campaign)
+    if truth is not None:
+        _, true_tw = correlate(controls, truth)
+        add("true", true_tw)
+    df = pd.DataFrame(rows, columns=["test", "channel", "model", "fit_percent"])
+    return df, twins
+
+
+def _mean_gain(df: pd.DataFrame) -> float:
+    if df.empty:
+        return 0.0
+    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent")
+    return float((wide["extended"] - wide["base"]).mean())
+
+
+# --------------------------------------------------------------------------------------
+# outputs
+# --------------------------------------------------------------------------------------
+def _control_fit(df: pd.DataFrame, model: str) -> dict:
+    out: dict[str, dict[str, float]] = {}
+    for r in df[df.model == model].itertuples():
+        out.setdefault(r.test, {})[r.channel] = round(float(r.fit_percent), 3)
+    return out
+
+
+def _model_params(p: np.ndarray, effects: list[str]) -> dict[str, float]:
+    active = {n for k in effects for n in EFFECTS[k].free}
+    return {s.name: float(p[i]) for i, s in enumerate(PARAM_SPECS)
+            if s.kind in ("base", "offset", "known") or s.name in active}
+
+
+def discovery_record(result: DiscoveryResult) -> dict:
+    """``discovery.json`` in the format of campaign-format.md."""
+    keys = [f"{f.effect}:{f.component}" for f in result.findings]
+    return {
+        "format": FORMAT,
+        "campaign": result.campaign,
+        "base": {"params": _model_params(result.base.params, []),
+                 "control_fit_percent": _control_fit(result.comparison, "base")},
+        "findings": [f.record() for f in result.findings],
+        "extended": {"params": _model_params(result.extended_params, keys),
+                     "control_fit_percent": _control_fit(result.comparison, "extended")},
+        "gain": result.gain,
+        "acceptance": {"min_relative_gain": result.settings.min_relative_gain,
+                       "min_aic_drop": result.settings.min_aic_drop,
+                       "max_effects": result.settings.max_effects},
+        "rounds": result.rounds,
+        "residual_regions": dominant_regions(result.locations, 0.0)[:8],
+        "sparse_regression": result.sparse,
+        "neural_residual": result.neural,
+        "comparison_mean_fit_percent": {
+            m: round(float(v), 3)
+            for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
+        },
+        "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
+        "wall_s": round(result.wall_s, 2),
+        "vector": as_dict(result.extended_params),
+    }
+
+
+def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
+    from mbst.discovery import figures
+
+    write_json(out / "discovery.json", discovery_record(result))
+    result.comparison.to_csv(out / "comparison.csv", index=False, float_format="%.4f")
+    rows = [{"round": r["round"], **{k: v for k, v in c.items() if k != "headline"},
+             "headline": json.dumps(c["headline"])} for r in result.rounds
+            for c in r["candidates"]]
+    pd.DataFrame(rows).to_csv(out / "structure_test.csv", index=False, float_format="%.6g")
+    pd.DataFrame(result.locations).to_csv(out / "residual_locations.csv", index=False,
+                                          float_format="%.4f")
+    figdir = out / "figures"
+    figdir.mkdir(parents=True, exist_ok=True)
+    figures.write_all(result, figdir)
+    (out / "discovery.md").write_text(markdown_summary(result))
+
+
+def markdown_summary(result: DiscoveryResult) -> str:
+    lines = [f"# Discovery on `{result.campaign}`", "",
+             f"{len(result.rounds)} round(s) of the structure test in {result.wall_s:.0f} s.", ""]
+    if result.findings:
+        lines += ["| # | effect | component | parameters | confidence |", "|---|---|---|---|---|"]
+        for i, f in enumerate(result.findings, 1):
+            pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
+            lines.append(f"| {i} | {f.effect} | {f.component} | {pars} | {f.confidence:.2f} |")
+        lines += [""] + [f"- **{f.effect} / {f.component}**: {f.evidence}"
+                         for f in result.findings]
+    else:
+        lines.append("No finding: the base model explains the identification tests down to "
+                     "the noise floor of the catalogue.")
+    for r in result.rounds:
+        if r.get("reason"):
+            lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
+    lines += ["", "## Control tests (held out): FIT %", ""]
+    wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
+                                         values="fit_percent", sort=False)
+    models = list(dict.fromkeys(result.comparison.model))
+    lines += ["| test | channel | " + " | ".join(models) + " |",
+              "|---|---|" + "---|" * len(models)]
+    for (t, ch), row in wide.iterrows():
+        lines.append(f"| {t} | {ch} | " + " | ".join(f"{row[m]:.1f}" for m in models) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run_discover(campaign: Campaign, out_dir: str | Path,
+                 settings: DiscoverSettings | None = None) -> DiscoveryResult:
+    """``mbst discover``: everything into ``out_dir``, atomically."""
+    result = discover(campaign, settings)
+    with atomic_output_dir(out_dir) as tmp:
+        write_discover_outputs(result, tmp)
+    return result

@@ -1,0 +1,368 @@
+"""Structure test: insert each catalogue effect, refit warm, score on identification tests.
+
+The backbone of naming (issue #4). An effect has memory or acts inside the
+dynamics (backlash, Dahl), so a regression on measured signals can confuse
+look-alikes; refitting the physics model with the effect inserted cannot.
+For every (effect, component) pair:
+
+1. a grid over the effect's own parameters with the base fit held (one
+   batched simulation per test) finds where to start;
+2. a local least-squares refit frees the effect together with what the
+   component's cascade stage isolates, because a base model that lacks an
+   effect compensates with those (k_g at its bound for backlash);
+3. the score is the weighted cost of that stage's identification tests,
+   compared with the base model refitted under the same budget, so a
+   candidate wins by its structure, not by extra optimiser iterations.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mbst.fitting import FitProblem, PreparedTest, _twins_batch, solve
+from mbst.identify import CASCADE, OFFSET_CHANNEL
+from mbst.systems.eps_params import (
+    EFFECT_CATALOGUE,
+    PARAM_INDEX,
+    PARAM_SPECS,
+    EffectSpec,
+)
+
+# Where a component acts (eps-model.md "Scenarios"): the earliest of these with
+# identification tests is the stage that isolates it.
+COMPONENT_SCENARIOS: dict[str, tuple[str, ...]] = {
+    "steering_column": ("blocked_column", "free_tie_rods", "blocked_rack", "suspended",
+                        "tires_on_ground"),
+    "torsion_bar": ("blocked_column", "free_tie_rods", "blocked_rack", "suspended",
+                    "tires_on_ground"),
+    "worm_gear": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
+    "motor": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
+    "rack_pinion": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
+    "rack": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
+    "tie_rods": ("blocked_rack", "suspended", "tires_on_ground"),
+    "tires": ("tires_on_ground",),
+}
+STAGE_FREE = dict(CASCADE)
+
+# The search keeps the Stribeck velocity above 0.3× its typical value: below, the
+# implicit friction step needs h < m/slope and one tire simulation costs minutes.
+SEARCH_LOWER = {
+    e.headline["stribeck_velocity"]: 0.3 * e.default_size[e.headline["stribeck_velocity"]]
+    for e in EFFECT_CATALOGUE if e.effect == "stribeck_friction"
+}
+
+# Starting grid of each headline parameter, as multiples of the catalogue's realistic size
+# (or absolute values where a multiple makes no sense).
+_GRID_FACTORS = (0.3, 1.0, 3.0)
+
+
+@dataclass
+class CandidateScore:
+    """One (effect, component) refitted on the stage that isolates its component."""
+
+    key: str
+    effect: str
+    component: str
+    stage: str
+    tests: list[str]
+    free: list[str]
+    k_effect: int
+    cost_base: float
+    cost: float
+    n_eff: float
+    aic_delta: float
+    params: np.ndarray = field(repr=False)
+    headline: dict[str, float] = field(default_factory=dict)
+    grid_best: dict[str, float] = field(default_factory=dict)
+    grid_gain: float = 0.0
+    grid_s: float = 0.0
+    wall_s: float = 0.0
+    per_test_cost: dict[str, float] = field(default_factory=dict)
+    per_test_cost_base: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def relative_gain(self) -> float:
+        """Share of the base model's stage cost the effect removes."""
+        return 1.0 - self.cost / self.cost_base if self.cost_base > 0 else 0.0
+
+
+def stage_for(spec: EffectSpec, scenarios_with_tests: set[str]) -> str | None:
+    """The first cascade stage with identification tests in which the component acts."""
+    for scenario, _ in CASCADE:
+        if scenario in COMPONENT_SCENARIOS[spec.component] and scenario in scenarios_with_tests:
+            return scenario
+    return None
+
+
+def start_grid(spec: EffectSpec) -> list[dict[str, float]]:
+    """Starting points over the effect's own parameters."""
+    axes = []
+    for name in spec.free:
+        ps = PARAM_SPECS[PARAM_INDEX[name]]
+        size = spec.default_size[name]
+        if name.endswith("asymmetric_friction.ratio"):
+            vals = (0.6, 0.8, 1.25, 1.6)
+        elif name.endswith("power_law_damping.exponent"):
+            vals = (0.4, 0.6, 0.8, 1.4)
+        elif name.endswith("static_to_coulomb_ratio"):
+            vals = (1.3, 1.8, 2.6)
+        elif name.endswith("stribeck_velocity"):
+            vals = (size, 3.0 * size)
+        elif name.endswith("stiffness_ratio"):
+            vals = (3.0, 8.0, 20.0)
+        elif name.endswith("position_dependent_friction.position_m"):
+            vals = tuple(np.linspace(-0.04, 0.04, 9))
+        elif name.endswith("backlash.width_rad"):
+            vals = tuple(size * f for f in (0.25, 0.5, 1.0, 2.0))
+        elif name.endswith("stop_angle_rad"):
+            vals = tuple(size * f for f in (0.5, 1.0, 2.0, 4.0))
+        else:
+            vals = tuple(size * f for f in _GRID_FACTORS)
+        axes.append([float(np.clip(v, ps.lower, ps.upper)) for v in vals])
+    return [dict(zip(spec.free, combo, strict=True)) for combo in itertools.product(*axes)]
+
+
+def compensating_parameters(p: np.ndarray, names: list[str], factor: float = 3.0
+                            ) -> dict[str, float]:
+    """Base parameters far from their typical value, with that typical value.
+
+    A base model that lacks an effect hides it by driving parameters to
+    unphysical values (gear stiffness 14× too soft, a damping at zero); the
+    structure test restarts those at the typical value so the inserted effect
+    can take over what they were compensating.
+    """
+    out = {}
+    for n in names:
+        spec = PARAM_SPECS[PARAM_INDEX[n]]
+        if spec.kind != "base" or spec.default <= 0:
+            continue
+        v = p[PARAM_INDEX[n]]
+        if not (spec.default / factor <= v <= spec.default * factor):
+            out[n] = spec.default
+    return out
+
+
+def effective_samples(residuals: list[np.ndarray]) -> float:
+    """Number of independent samples in coloured residuals (integrated autocorrelation).
+
+    The filter and a missing effect both colour the residual; an information
+    criterion that counted every sample would accept anything.
+    """
+    total = 0.0
+    for r in residuals:
+        r = np.asarray(r, float) - np.mean(r)
+        n = len(r)
+        if n < 8 or not np.any(r):
+            total += n
+            continue
+        f = np.fft.rfft(r, 2 * n)
+        acf = np.fft.irfft(f * np.conj(f))[:n]
+        acf /= acf[0]
+        # sum until the autocorrelation first drops below zero (Geyer-style cut)
+        neg = np.nonzero(acf[1:] <= 0)[0]
+        m = int(neg[0]) + 1 if neg.size else n
+        t_int = 1.0 + 2.0 * float(np.sum(acf[1:m]))
+        total += n / max(t_int, 1.0)
+    return total
+
+
+def aic_delta(cost: float, cost_base: float, n_eff: float, k: int) -> float:
+    """Akaike difference (extended − base) with the effective sample count."""
+    if cost_base <= 0 or cost <= 0:
+        return 0.0
+    return float(n_eff * math.log(cost / cost_base) + 2.0 * k)
+
+
+class StageScorer:
+    """Shared machinery of one stage: its tests, scales, and the base refit.
+
+    Parameters
+    ----------
+    tests
+        The stage's identification tests (prepared).
+    stage
+        Scenario name of the stage.
+    base
+        Base-model parameter vector (the cascade's result).
+    scales
+        Channel scales of the whole identification set (the cascade's).
+    upper
+        Parameter upper bounds from pre-identification.
+    """
+
+    def __init__(self, tests: list[PreparedTest], stage: str, base: np.ndarray,
+                 scales: dict[str, float], upper: dict[str, float] | None = None,
+                 decimate: int = 2, max_nfev: int = 15, starts: int = 1,
+                 reset: dict[str, float] | None = None) -> None:
+        self.tests = tests
+        self.stage = stage
+        self.base = np.array(base, float)
+        self.scales = scales
+        self.upper = upper or {}
+        self.decimate = decimate
+        self.max_nfev = max_nfev
+        self.starts = starts
+        channels = {ch for pt in tests for ch in pt.measured}
+        self.stage_free = [n for n in STAGE_FREE[stage]
+                           if not n.startswith("offset.") or OFFSET_CHANNEL[n] in channels]
+        # a base model that lacks an effect compensates with the stage's parameters (k_g
+        # 14x too soft for backlash or Stribeck): the grid also tries every point with
+        # them back at their typical starting values, where the effect can take over
+        self.reset = {n: v for n, v in (reset or {}).items()
+                      if n in self.stage_free and not n.startswith("offset.")}
+        self._base_fit: tuple[np.ndarray, float] | None = None
+
+    def problem(self, free: list[str], p0: np.ndarray,
+                tests: list[PreparedTest] | None = None) -> FitProblem:
+        tests = tests if tests is not None else self.tests
+        return FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p0,
+                          self.scales, lower=SEARCH_LOWER, upper=self.upper,
+                          decimate=self.decimate)
+
+    def costs(self, ps: np.ndarray, tests: list[PreparedTest] | None = None
+              ) -> np.ndarray:
+        """Data cost (no prior) of many parameter vectors, per test; shape (len(ps), tests)."""
+        tests = tests if tests is not None else self.tests
+        prob = self.problem(self.stage_free, self.base, tests)
+        out = np.zeros((len(ps), len(tests)))
+        for j, pt in enumerate(tests):
+            for i, tw in enumerate(_twins_batch(pt, ps)):
+                r = prob._res_of_twin(pt, tw)
+                out[i, j] = 0.5 * float(r @ r) if np.all(np.isfinite(r)) else np.inf
+        return out
+
+    def base_refit(self) -> tuple[np.ndarray, float]:
+        """The base model refitted on this stage under the candidates' budget."""
+        if self._base_fit is None:
+            prob = self.problem(self.stage_free, self.base)
+            fr = solve(prob, [self.base], max_nfev=self.max_nfev)
+            p = fr.p
+            self._base_fit = (p, float(self.costs(p[None])[0].sum()))
+        return self._base_fit
+
+    def residual_n_eff(self, p: np.ndarray) -> float:
+        prob = self.problem(self.stage_free, p)
+        res = []
+        for pt, tw in zip(self.tests, [_twins_batch(pt, p[None])[0] for pt in self.tests],
+                          strict=True):
+            for ch in pt.measured:
+                res.append(((tw[ch] - pt.measured[ch]))[:: prob.decimate])
+        return effective_samples(res)
+
+    def score(self, spec: EffectSpec, n_eff: float, max_nfev: int | None = None,
+              start: CandidateScore | None = None) -> CandidateScore:
+        """Insert ``spec``, search its start (or continue from ``start``), refit it.
+
+        The effect is refitted together with the stage's own parameters.
+        """
+        t0 = time.perf_counter()
+        p_base, cost_base = self.base_refit()
+        if start is None:
+            grid = start_grid(spec)
+            ps = np.repeat(p_base[None], len(grid), axis=0)
+            for i, g in enumerate(grid):
+                for n, v in g.items():
+                    ps[i, PARAM_INDEX[n]] = v
+            grid_cost = self.costs(ps).sum(axis=1)
+            order = np.argsort(grid_cost)
+            starts = [ps[i] for i in order[: self.starts]]
+            grid_best = grid[int(order[0])]
+            grid_gain = 1.0 - float(grid_cost[order[0]]) / cost_base if cost_base > 0 else 0.0
+            if self.reset:
+                # the handbook start: compensating parameters at their typical values and
+                # the effect at its realistic size (evaluating it alone says little: the
+                # rest of the stage must move with the effect before the cost drops)
+                q = p_base.copy()
+                for n, v in {**self.reset, **spec.default_size}.items():
+                    q[PARAM_INDEX[n]] = v
+                starts.append(q)
+        else:
+            starts = [start.params]
+            grid_best, grid_gain = start.grid_best, start.grid_gain
+        t_grid = time.perf_counter() - t0
+        free = list(spec.free) + self.stage_free
+        prob = self.problem(free, p_base)
+        fr = solve(prob, starts, max_nfev=max_nfev or self.max_nfev)
+        per_test = self.costs(fr.p[None])[0]
+        per_test_base = self.costs(p_base[None])[0]
+        cost = float(per_test.sum())
+        return CandidateScore(
+            key=spec.key, effect=spec.effect, component=spec.component, stage=self.stage,
+            tests=[pt.id for pt in self.tests], free=free, k_effect=len(spec.free),
+            cost_base=cost_base, cost=cost, n_eff=n_eff,
+            aic_delta=aic_delta(cost, cost_base, n_eff, len(spec.free)), params=fr.p,
+            headline={h: float(fr.p[PARAM_INDEX[n]]) for h, n in spec.headline.items()},
+            grid_best=grid_best, grid_gain=grid_gain, grid_s=t_grid,
+            wall_s=time.perf_counter() - t0 + (start.wall_s if start else 0.0),
+            per_test_cost={pt.id: float(c) for pt, c in zip(self.tests, per_test, strict=True)},
+            per_test_cost_base={pt.id: float(c)
+                                for pt, c in zip(self.tests, per_test_base, strict=True)},
+        )
+
+
+def candidates(exclude: set[str] = frozenset()) -> list[EffectSpec]:
+    """Every catalogue pair not yet in the model."""
+    return [e for e in EFFECT_CATALOGUE if e.key not in exclude]
+
+
+def structure_test(
+    id_tests: list[PreparedTest],
+    base: np.ndarray,
+    scales: dict[str, float],
+    upper: dict[str, float] | None = None,
+    exclude: set[str] = frozenset(),
+    decimate: int = 2,
+    screen_nfev: int = 5,
+    refine_nfev: int = 15,
+    refine: int = 5,
+    reset: dict[str, float] | None = None,
+    only: set[str] | None = None,
+    progress=None,
+) -> list[CandidateScore]:
+    """Score every catalogue candidate on the stage that isolates its component.
+
+    Every candidate (or those in ``only``) gets a short refit
+    (``screen_nfev``); the ``refine`` best continue to ``refine_nfev``.
+    Returns the scores sorted by the share of their stage's residual cost they
+    remove, best first. (The Akaike difference is not comparable across stages:
+    a stage with more effective samples inflates it.)
+    """
+    scenarios = {pt.scenario for pt in id_tests}
+    scorers: dict[str, StageScorer] = {}
+    n_eff: dict[str, float] = {}
+    specs: dict[str, EffectSpec] = {}
+    out = []
+    for spec in candidates(exclude):
+        if only is not None and spec.key not in only:
+            continue
+        stage = stage_for(spec, scenarios)
+        if stage is None:
+            continue
+        if stage not in scorers:
+            scorers[stage] = StageScorer([pt for pt in id_tests if pt.scenario == stage], stage,
+                                         base, scales, upper, decimate, refine_nfev,
+                                         reset=reset)
+            n_eff[stage] = scorers[stage].residual_n_eff(scorers[stage].base_refit()[0])
+        specs[spec.key] = spec
+        sc = scorers[stage].score(spec, n_eff[stage], max_nfev=screen_nfev)
+        out.append(sc)
+        if progress:
+            progress("screen", sc)
+    out.sort(key=_rank)
+    for i, sc in enumerate(out[:refine]):
+        if sc.relative_gain <= 0:
+            break
+        out[i] = scorers[sc.stage].score(specs[sc.key], sc.n_eff, start=sc)
+        if progress:
+            progress("refine", out[i])
+    out.sort(key=_rank)
+    return out
+
+
+def _rank(s: CandidateScore) -> tuple[float, float]:
+    return (-s.relative_gain, s.aic_delta)

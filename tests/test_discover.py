@@ -1,0 +1,177 @@
+"""Hidden-effect tests of discovery (issue #4).
+
+Each case plants one catalogue effect at its realistic size in a seeded bench
+campaign and requires the first finding to name effect and component (and the
+size, for backlash); clean campaigns must give an empty answer. The compact
+plan (blocked column + free tie-rods) keeps a case near a minute; the whole
+catalogue runs under ``-m slow``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import mbst.discovery.pipeline as pipeline_mod
+from mbst.bench import BenchRecipe, compact_plan, run_bench
+from mbst.campaign import read_campaign
+from mbst.discovery.pipeline import DiscoverSettings, discover, discovery_record
+from mbst.discovery.structure import effective_samples, stage_for, start_grid
+from mbst.systems.eps_params import EFFECT_CATALOGUE, EFFECTS
+
+SETTINGS = dict(max_effects=1, sparse=False, neural=False)
+
+# Effects the compact plan cannot show at their realistic size, with the reason.
+_STICK_SLIP = ("at its realistic size it makes the rig stick-slip; the phase of that sawtooth "
+               "depends on the input noise, so even the true model driven by the measured angle "
+               "misses it and an output-error refit cannot lock onto it")
+KNOWN_MISSES = {
+    "stribeck_friction:rack": _STICK_SLIP,
+    "stribeck_friction:motor": _STICK_SLIP,
+}
+
+
+def _run(tmp_path_factory, effects: list[str], seed: int = 1, **kw):
+    out = tmp_path_factory.mktemp("disc")
+    camp = read_campaign(run_bench(out, BenchRecipe(effects=effects, seed=seed,
+                                                    plan=compact_plan())))
+    truth = json.loads((out / "truth.json").read_text())
+    return camp, truth, discover(camp, DiscoverSettings(**{**SETTINGS, **kw}))
+
+
+@pytest.fixture(scope="module")
+def backlash(tmp_path_factory):
+    """The worm-gear backlash case, with every simulated test id recorded in order."""
+    import mbst.discovery.structure as structure_mod
+    import mbst.fitting as fitting_mod
+    import mbst.identify as identify_mod
+
+    seen: list[str] = []
+    real_batch, real_twin = fitting_mod._twins_batch, fitting_mod.simulate_twin
+    real_compare = pipeline_mod._compare
+
+    def spy_batch(pt, ps):
+        seen.append(pt.id)
+        return real_batch(pt, ps)
+
+    def spy_twin(pt, p):
+        seen.append(pt.id)
+        return real_twin(pt, p)
+
+    def spy_compare(*a, **k):
+        seen.append("COMPARE")
+        return real_compare(*a, **k)
+
+    with pytest.MonkeyPatch.context() as mp:
+        for mod in (pipeline_mod, structure_mod, fitting_mod):
+            mp.setattr(mod, "_twins_batch", spy_batch)
+        for mod in (fitting_mod, identify_mod):
+            mp.setattr(mod, "simulate_twin", spy_twin)
+        mp.setattr(pipeline_mod, "_compare", spy_compare)
+        camp, truth, result = _run(tmp_path_factory, ["backlash:worm_gear"])
+    result.simulated_ids = seen
+    return camp, truth, result
+
+
+def _assert_first_finding(result, key: str, truth: dict) -> None:
+    assert result.findings, f"nothing found; rounds: {result.rounds[0]['reason']}"
+    f = result.findings[0]
+    assert f"{f.effect}:{f.component}" == key, f.evidence
+    if f.effect == "backlash":
+        true_w = truth["effects"][0]["parameters"]["width_rad"]
+        assert f.parameters["width_rad"] == pytest.approx(true_w, rel=0.2)
+
+
+def test_worm_gear_backlash_is_named_with_its_width(backlash):
+    camp, truth, result = backlash
+    _assert_first_finding(result, "backlash:worm_gear", truth)
+    f = result.findings[0]
+    assert 0.5 < f.confidence <= 1.0
+    assert f.cv["folds"] == 3 and f.cv["wins"] >= 2
+    assert "structure test" in f.evidence and "runner-up" in f.evidence
+
+
+def test_extension_restores_control_fit_to_the_true_model(backlash):
+    _, _, result = backlash
+    wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
+                                         values="fit_percent")
+    torque = wide.xs("steering_torque_nm", level="channel")
+    assert (torque["base"] < torque["true"] - 3).all()  # the effect is visible on the control
+    assert (torque["extended"] > torque["true"] - 1.0).all()
+    assert result.gain["control_fit_percent_mean"] > 0
+
+
+def test_discovery_record_follows_the_spec(backlash):
+    _, _, result = backlash
+    rec = json.loads(json.dumps(discovery_record(result)))
+    assert rec["format"] == "mbst-discovery/1"
+    for key in ("campaign", "base", "findings", "extended", "gain"):
+        assert key in rec
+    f = rec["findings"][0]
+    spec = EFFECTS[f"{f['effect']}:{f['component']}"]
+    assert set(f["parameters"]) == set(spec.headline)
+    assert isinstance(f["evidence"], str) and 0 <= f["confidence"] <= 1
+    assert set(rec["base"]["control_fit_percent"]) == {"s2_sine_0p8hz_ctrl"}
+    assert "worm_gear.backlash.width_rad" in rec["extended"]["params"]
+    assert "worm_gear.backlash.width_rad" not in rec["base"]["params"]
+    assert rec["gain"]["aic_delta"] < 0
+
+
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.slow)])
+def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
+    _, _, result = _run(tmp_path_factory, [], seed=seed)
+    assert result.findings == [], [f.evidence for f in result.findings]
+    assert "noise floor" in result.rounds[0]["reason"]
+    np.testing.assert_array_equal(result.extended_params, result.base.params)
+
+
+@pytest.mark.parametrize("key", [
+    "stiffness_limit_stop:torsion_bar",
+    pytest.param("stribeck_friction:motor",
+                 marks=pytest.mark.xfail(reason=KNOWN_MISSES["stribeck_friction:motor"],
+                                         strict=True)),
+])
+def test_hidden_effect_is_named(tmp_path_factory, key):
+    _, truth, result = _run(tmp_path_factory, [key])
+    _assert_first_finding(result, key, truth)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("key", [
+    pytest.param(e.key, marks=pytest.mark.xfail(reason=KNOWN_MISSES[e.key], strict=True))
+    if e.key in KNOWN_MISSES else e.key
+    for e in EFFECT_CATALOGUE if stage_for(e, {"blocked_column", "free_tie_rods"})
+])
+def test_catalogue_effect_is_named(tmp_path_factory, key):
+    _, truth, result = _run(tmp_path_factory, [key])
+    _assert_first_finding(result, key, truth)
+
+
+def test_control_tests_decide_nothing(backlash):
+    """No control test is simulated before the comparison step (spied in the fixture)."""
+    _, _, result = backlash
+    seen = result.simulated_ids
+    assert "COMPARE" in seen
+    before = seen[: seen.index("COMPARE")]
+    assert "s2_sine_0p2hz" not in before  # not a test of the compact plan
+    assert {"s1_sine_0p5hz", "s2_sine_0p25hz"} <= set(before)
+    assert "s2_sine_0p8hz_ctrl" not in before
+    assert "s2_sine_0p8hz_ctrl" in seen[seen.index("COMPARE"):]
+
+
+def test_effective_samples_counts_coloured_noise_as_fewer_samples():
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal(4000)
+    coloured = np.convolve(white, np.ones(20) / 20, mode="same")
+    assert effective_samples([white]) == pytest.approx(4000, rel=0.15)
+    assert effective_samples([coloured]) < 600
+
+
+def test_start_grid_covers_each_headline_parameter():
+    for spec in EFFECT_CATALOGUE:
+        grid = start_grid(spec)
+        assert grid, spec.key
+        for name in spec.free:
+            assert len({g[name] for g in grid}) >= 2, (spec.key, name)

@@ -1,0 +1,262 @@
+"""Sparse-regression discovery and the SINDy-only comparison model (discovery/sindy.py)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from mbst.bench import BenchRecipe, run_bench
+from mbst.campaign import read_campaign
+from mbst.discovery.data import TestResidual, residual_data
+from mbst.discovery.sindy import (
+    SindyControlModel,
+    _dahl,
+    _filter_tau,
+    _play,
+    fit_percent,
+    residual_regression,
+)
+from mbst.identify import IdentifySettings, identify
+from mbst.preprocess import exponential_filter
+
+TORQUE = "steering_torque_nm"
+
+
+def _campaign(tmp_path_factory, name: str, effects: list[str]) -> list[TestResidual]:
+    camp = read_campaign(run_bench(tmp_path_factory.mktemp(name), BenchRecipe(effects=effects,
+                                                                                  seed=1)))
+    # one start is enough on the demo campaign and halves the time (same optimum here)
+    res = identify(camp, IdentifySettings(multistart=1))
+    return [residual_data(pt, res.params, res.twins.get(pt.id)) for pt in res.prepared.values()]
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory) -> list[TestResidual]:
+    return _campaign(tmp_path_factory, "clean", [])
+
+
+@pytest.fixture(scope="module")
+def backlash(tmp_path_factory) -> list[TestResidual]:
+    return _campaign(tmp_path_factory, "backlash", ["backlash:worm_gear"])
+
+
+@pytest.fixture(scope="module")
+def ev_clean(clean):
+    return residual_regression(clean)
+
+
+@pytest.fixture(scope="module")
+def ev_backlash(backlash):
+    return residual_regression(backlash)
+
+
+def _report(name, ev) -> None:
+    print(f"\n{name}: effect share {ev.variance_explained:.3f} "
+          f"(nuisance {ev.nuisance_variance_explained:.3f}), residual rms {ev.residual_rms:.4f}, "
+          f"explained rms {ev.explained_rms:.4f}")
+    print(f"  ranking {[(k, round(v, 3)) for k, v in ev.ranking]}")
+    print(f"  key scores {[(k, round(v, 3)) for k, v in list(ev.key_scores.items())[:4]]}")
+    for t in ev.terms:
+        print(f"  {t.variance_share:.3f}  {t.key:<38} {t.name}  ({t.coefficient:.4g})")
+
+
+def _garbled_controls(tests: list[TestResidual]) -> list[TestResidual]:
+    """The same campaign with every control test's data replaced by garbage."""
+    rng = np.random.default_rng(7)
+    out = []
+    for t in tests:
+        if t.role == "control":
+            t = copy.deepcopy(t)
+            junk = lambda v: 1e3 * rng.standard_normal(np.shape(v))
+            t.measured = {k: junk(v) for k, v in t.measured.items()}
+            t.states = {k: junk(v) for k, v in t.states.items()}
+            t.angle_rad, t.omega_rad_per_s = junk(t.angle_rad), junk(t.omega_rad_per_s)
+        out.append(t)
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# building blocks
+# ---------------------------------------------------------------------------------------
+
+
+def test_play_operator_opens_a_gap_of_the_given_width():
+    x = np.concatenate([np.linspace(0, 1, 101), np.linspace(0.99, 0.9, 10)])
+    y = _play(x, 0.025)
+    # engaged while driven forward; after the reversal the far side stands still until
+    # the input has crossed the whole gap (0.05), then it is dragged along again
+    assert np.isclose(x[100] - y[100], 0.025)
+    assert np.allclose(y[100:106], y[100])
+    assert np.isclose(y[-1] - x[-1], 0.025)
+    assert np.all(np.abs(x - y) <= 0.025 + 1e-12)
+
+
+def test_dahl_state_saturates_and_is_rate_independent():
+    x_fine = np.concatenate([np.linspace(0, 0.01, 1001), np.linspace(0.01, 0.0, 1001)])
+    x_coarse = x_fine[::10]
+    z_fine, z_coarse = _dahl(x_fine, 1e-3), _dahl(x_coarse, 1e-3)
+    assert z_fine[1000] == pytest.approx(1.0, abs=1e-4)  # ten lengths of travel: saturated
+    assert z_fine[-1] == pytest.approx(-1.0, abs=1e-4)
+    # a function of travel, not of the sampling: the same state at the shared samples
+    assert np.allclose(z_fine[::10][:100], z_coarse[:100], atol=1e-9)
+
+
+def test_filter_time_constant_is_recovered_from_the_twin(clean):
+    for t in clean:
+        assert _filter_tau(t, TORQUE) == pytest.approx(IdentifySettings().tau_s, rel=1e-6)
+
+
+# ---------------------------------------------------------------------------------------
+# residual regression
+# ---------------------------------------------------------------------------------------
+
+
+def test_clean_campaign_leaves_little_to_explain(ev_clean):
+    _report("clean", ev_clean)
+    assert ev_clean.variance_explained < 0.1
+    # in absolute terms below the 0.02 N·m torque-sensor noise
+    assert ev_clean.explained_rms < 0.02
+    assert sum(v for _, v in ev_clean.ranking) == pytest.approx(ev_clean.variance_explained)
+
+
+def test_backlash_explains_far_more_than_clean(ev_clean, ev_backlash):
+    _report("backlash", ev_backlash)
+    assert ev_backlash.variance_explained > 0.1
+    assert ev_backlash.variance_explained > 3 * ev_clean.variance_explained
+    # explained variance in N·m²: an order of magnitude and more
+    assert ev_backlash.explained_rms > 4 * ev_clean.explained_rms
+
+
+def test_backlash_is_blamed_on_a_reversal_effect(ev_backlash):
+    # In torque alone worm-gear and rack-pinion backlash explain nearly the same thing
+    # (the key scores tie); which component it is, the structure test decides.
+    top_key = ev_backlash.ranking[0][0]
+    assert top_key.split(":")[0] in ("backlash", "presliding_hysteresis", "stribeck_friction")
+    assert "backlash:worm_gear" in list(ev_backlash.key_scores)[:3]
+    # the first term found is a gap term near the hidden width (0.035 rad)
+    first = ev_backlash.terms[0].name
+    assert "gap(pinion" in first or "play(pinion" in first
+    width = float(first.split("w=")[1].split(")")[0])
+    assert 0.02 <= width <= 0.05
+
+
+def test_planted_stribeck_term_is_recovered(clean):
+    # a Stribeck-shaped discrepancy in the rack, planted on the clean residual
+    planted = []
+    for t in clean:
+        t = copy.deepcopy(t)
+        v = t.states["rack_speed_m_per_s"]
+        extra = 0.4 * np.tanh(v / 2e-5) * np.exp(-((v / 1e-3) ** 2))
+        t.measured[TORQUE] = t.measured[TORQUE] + exponential_filter(extra, t.dt_s, 0.005)
+        planted.append(t)
+    ev = residual_regression(planted)
+    _report("planted stribeck:rack", ev)
+    # the rack and the motor move as one (no backlash): their Stribeck terms tie in torque
+    assert ev.ranking[0][0] in ("stribeck_friction:rack", "stribeck_friction:motor")
+    assert ev.variance_explained > 0.3  # the part the base model's Coulomb term cannot take
+    assert ev.total_variance_explained > 0.9
+
+
+def test_pure_noise_residual_selects_nothing(clean):
+    rng = np.random.default_rng(3)
+    noisy = []
+    for t in clean:
+        t = copy.deepcopy(t)
+        t.measured = {k: t.simulated[k] + exponential_filter(
+            0.02 * rng.standard_normal(len(t.time_s)), t.dt_s, 0.005) for k in t.measured}
+        noisy.append(t)
+    ev = residual_regression(noisy)
+    assert ev.variance_explained < 0.03
+    assert ev.nuisance_variance_explained < 0.05
+
+
+def test_control_tests_are_never_used(backlash, ev_backlash):
+    assert any(t.role == "control" for t in backlash)
+    ev = residual_regression(_garbled_controls(backlash))
+    assert ev.to_dict() == ev_backlash.to_dict()
+    assert not any("ctrl" in tid for tid in ev.test_ids)
+
+
+def test_residual_regression_is_deterministic(clean, ev_clean):
+    assert residual_regression(clean).to_dict() == ev_clean.to_dict()
+
+
+def test_stlsq_optimizer_agrees_on_clean_vs_backlash(clean, backlash):
+    c = residual_regression(clean, optimizer="stlsq")
+    b = residual_regression(backlash, optimizer="stlsq")
+    _report("stlsq backlash", b)
+    assert b.variance_explained > 3 * c.variance_explained
+    assert b.ranking[0][0].startswith("backlash:")
+
+
+# ---------------------------------------------------------------------------------------
+# SINDy-only comparison model
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def control_model(backlash) -> SindyControlModel:
+    return SindyControlModel().fit(backlash)
+
+
+def test_sindy_control_model_predicts_control_tests(backlash, control_model):
+    print(f"\nSINDy-only fit {control_model.fit_time_s:.2f} s")
+    assert control_model.fit_time_s < 20
+    controls = [t for t in backlash if t.role == "control"]
+    assert controls
+    for t in controls:
+        y = control_model.predict(t)
+        assert set(y) == set(t.measured)
+        fits = {}
+        for ch, yhat in y.items():
+            assert yhat.shape == t.measured[ch].shape
+            assert np.all(np.isfinite(yhat)), control_model.failures.get(t.id)
+            fits[ch] = fit_percent(t.measured[ch], yhat)
+        print(f"  {t.id:<22} " + "  ".join(f"{c} {f:.1f}%" for c, f in fits.items()))
+        assert fits["rack_position_m"] > 80  # the integrating channel is easy
+        assert fits[TORQUE] > 0  # better than the mean, nothing more is claimed
+    assert not control_model.failures
+
+
+def test_sindy_control_model_ignores_control_tests_and_is_deterministic(backlash, control_model):
+    other = SindyControlModel().fit(_garbled_controls(backlash))
+    for scen, m in control_model.models_.items():
+        if m.sindy is not None:
+            assert np.array_equal(m.sindy.coefficients(), other.models_[scen].sindy.coefficients())
+    t = next(t for t in backlash if t.role == "control")
+    a, b = control_model.predict(t), other.predict(t)
+    assert all(np.array_equal(a[c], b[c]) for c in a)
+
+
+def test_fast_right_hand_side_is_the_pysindy_model(control_model):
+    rng = np.random.default_rng(0)
+    for m in control_model.models_.values():
+        if m.sindy is None:
+            continue
+        x = rng.standard_normal((20, len(m.dynamic)))
+        u = rng.standard_normal((20, 3))
+        theta = SindyControlModel._poly(m.sindy.feature_library.powers_)
+        fast = theta(np.hstack([x, u])) @ np.asarray(m.sindy.coefficients()).T
+        assert np.allclose(fast, m.sindy.predict(x, u=u))
+
+
+def test_static_map_in_blocked_column(backlash, control_model):
+    m = control_model.models_["blocked_column"]
+    assert m.sindy is None and m.static == [TORQUE]
+    t = next(t for t in backlash if t.scenario == "blocked_column")
+    assert fit_percent(t.measured[TORQUE], control_model.predict(t)[TORQUE]) > 90
+
+
+def test_failed_simulation_gives_nan_and_a_reason(backlash):
+    # a blow-up bound below the starting state: every dynamic simulation "explodes"
+    model = SindyControlModel(blowup=1e-6).fit(backlash)
+    t = next(t for t in backlash if t.role == "control")
+    y = model.predict(t)
+    assert all(np.all(np.isnan(v)) and len(v) == len(t.time_s) for v in y.values())
+    assert "left" in model.failures[t.id]
+    odd = copy.deepcopy(t)
+    odd.scenario, odd.id = "suspended", "odd"
+    assert np.all(np.isnan(model.predict(odd)[TORQUE]))
+    assert "no model" in model.failures["odd"]

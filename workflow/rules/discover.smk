@@ -1,0 +1,65 @@
+# Discovery: find what the base model lacks, name the effect and its component,
+# insert it, refit, and compare model families on the held-out control tests
+# (base, extended, SINDy-only, physics + neural residual, and the bench's true
+# model when the campaign came from the virtual bench).
+#
+# Same atomic pattern as identify.smk: write into discover.tmp, rename when done.
+# `mbst discover` runs its own base identification with the same settings as the
+# identify rule (deterministic: the same fit), so the two rules can run in parallel.
+
+
+rule discover:
+    input:
+        campaign_inputs,
+    output:
+        discovery="results/{campaign}/discover/discovery.json",
+        comparison=report(
+            "results/{campaign}/discover/comparison.csv",
+            caption="../report/comparison.rst",
+            category="Discovery",
+            subcategory="{campaign}",
+            labels={"campaign": "{campaign}", "result": "control FIT per model family"},
+        ),
+        summary=report(
+            "results/{campaign}/discover/discovery.md",
+            caption="../report/discovery_md.rst",
+            category="Discovery",
+            subcategory="{campaign}",
+            labels={"campaign": "{campaign}", "result": "findings"},
+        ),
+        figures=report(
+            directory("results/{campaign}/discover/figures"),
+            patterns=["{name}.png"],
+            caption="../report/discover_figures.rst",
+            category="Discovery",
+            subcategory="{campaign}",
+            labels={"campaign": "{campaign}", "result": "figure: {name}"},
+        ),
+    log:
+        "logs/discover/{campaign}.log",
+    benchmark:
+        "results/{campaign}/benchmarks/discover.tsv"
+    threads: 2
+    params:
+        campaign_dir=campaign_dir,
+        outdir=lambda wildcards, output: os.path.dirname(output.discovery),
+        tmpdir=lambda wildcards, output: f"{os.path.dirname(output.discovery)}.tmp",
+        tau_s=config["preprocess"]["tau_s"],
+        seed=config["identify"]["seed"],
+        multistart=config["identify"]["multistart"],
+        max_effects=config["discover"]["max_effects"],
+        min_gain=config["discover"]["min_relative_gain"],
+        skip=discover_skip_args,
+        code=CODE_VERSION,
+    conda:
+        "../envs/mbst.yaml"
+    shell:
+        "rm -rf {params.tmpdir:q} {params.outdir:q}"
+        " && OMP_NUM_THREADS={threads} MKL_NUM_THREADS={threads}"
+        " OPENBLAS_NUM_THREADS={threads} NUMBA_NUM_THREADS={threads}"
+        " mbst discover {params.campaign_dir:q} --out {params.tmpdir:q} --quiet"
+        " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart}"
+        " --max-effects {params.max_effects} --min-gain {params.min_gain} {params.skip}"
+        " > {log:q} 2>&1"
+        " && rm -rf {params.outdir:q}"
+        " && mv {params.tmpdir:q} {params.outdir:q}"
