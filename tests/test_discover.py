@@ -99,7 +99,11 @@ def test_extension_restores_control_fit_to_the_true_model(backlash):
                                          values="fit_percent")
     torque = wide.xs("steering_torque_nm", level="channel")
     assert (torque["base"] < torque["true"] - 3).all()  # the effect is visible on the control
-    assert (torque["extended"] > torque["true"] - 1.0).all()
+    # the compact plan has a third of the demo's data: 1.5 points here, 0.1 on the demo
+    # campaign (benchmarks/discover.py)
+    assert (torque["extended"] > torque["true"] - 1.5).all()
+    closed = (torque["extended"] - torque["base"]) / (torque["true"] - torque["base"])
+    assert (closed > 0.85).all()
     assert result.gain["control_fit_percent_mean"] > 0
 
 

@@ -95,7 +95,7 @@ def comparison_bars(result, path: Path) -> None:
     wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent",
                           sort=False)
     models = list(dict.fromkeys(df.model))
-    fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 3.6))
+    fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 4.2))
     x = np.arange(len(wide))
     w = 0.8 / len(models)
     for k, m in enumerate(models):
@@ -106,7 +106,7 @@ def comparison_bars(result, path: Path) -> None:
     ax.set_ylabel("control FIT [%] (clipped to 0–100)", fontsize=8)
     lo = np.nanmin(np.clip(wide.to_numpy(float), 0, 100))
     ax.set_ylim(max(0.0, lo - 5), 100.5)
-    ax.legend(fontsize=7, ncol=len(models))
+    ax.legend(fontsize=7, ncol=len(models), loc="upper center", bbox_to_anchor=(0.5, -0.22))
     ax.grid(axis="y", alpha=0.3)
     ax.set_title("held-out control tests: FIT % of each model family", fontsize=9)
     fig.tight_layout()
