@@ -254,7 +254,7 @@ class NeuralResidual:
     30 s of training on 2 busy CPU cores.
     """
 
-    def __init__(self, latent: int = 3, hidden: int = 16, window_s: float = 0.6,
+    def __init__(self, latent: int = 3, hidden: int = 16, window_s: float = 0.5,
                  iterations: int = 200, seed: int = 0, batch: int = 32,
                  learning_rate: float = 3e-2, substeps: float = 0.5) -> None:
         self.latent = latent
