@@ -12,12 +12,19 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 import mbst.discovery.pipeline as pipeline_mod
 from mbst.bench import BenchRecipe, compact_plan, run_bench
 from mbst.campaign import read_campaign
-from mbst.discovery.pipeline import DiscoverSettings, discover, discovery_record
+from mbst.cli import main
+from mbst.discovery.pipeline import (
+    DiscoverSettings,
+    discover,
+    discovery_record,
+    write_discover_outputs,
+)
 from mbst.discovery.structure import effective_samples, stage_for, start_grid
 from mbst.systems.eps_params import EFFECT_CATALOGUE, EFFECTS
 
@@ -159,7 +166,6 @@ def test_control_tests_decide_nothing(backlash):
     seen = result.simulated_ids
     assert "COMPARE" in seen
     before = seen[: seen.index("COMPARE")]
-    assert "s2_sine_0p2hz" not in before  # not a test of the compact plan
     assert {"s1_sine_0p5hz", "s2_sine_0p25hz"} <= set(before)
     assert "s2_sine_0p8hz_ctrl" not in before
     assert "s2_sine_0p8hz_ctrl" in seen[seen.index("COMPARE"):]
@@ -179,3 +185,34 @@ def test_start_grid_covers_each_headline_parameter():
         assert grid, spec.key
         for name in spec.free:
             assert len({g[name] for g in grid}) >= 2, (spec.key, name)
+
+
+def test_discover_outputs_carry_the_findings(backlash, tmp_path):
+    _, _, result = backlash
+    write_discover_outputs(result, tmp_path)
+    on_disk = json.loads((tmp_path / "discovery.json").read_text())
+    assert on_disk["findings"] == json.loads(json.dumps(discovery_record(result)))["findings"]
+    table = pd.read_csv(tmp_path / "comparison.csv")
+    assert set(table.model) == {"base", "extended", "true"}
+    merged = table.merge(result.comparison, on=["test", "channel", "model"])
+    assert len(merged) == len(result.comparison)
+    np.testing.assert_allclose(merged.fit_percent_x, merged.fit_percent_y, atol=1e-3)
+    ranking = pd.read_csv(tmp_path / "structure_test.csv")
+    assert ranking.iloc[0]["key"] == "backlash:worm_gear"
+    assert "| 1 | backlash | worm_gear |" in (tmp_path / "discovery.md").read_text()
+    for fig in ("reversal_zoom.png", "structure_test.png", "comparison.png", "hysteresis.png"):
+        assert (tmp_path / "figures" / fig).stat().st_size > 10_000
+
+
+def test_cli_discover_bad_campaign_writes_nothing(tmp_path, capsys):
+    camp_dir = run_bench(tmp_path / "bench", BenchRecipe(effects=[], seed=1, plan=compact_plan()))
+    f = camp_dir / "tests" / "s2_ramp.csv"
+    df = pd.read_csv(f)
+    df.loc[9, "rack_position_m"] = np.nan
+    df.to_csv(f, index=False)
+    out = tmp_path / "out"
+    assert main(["discover", str(camp_dir), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "'s2_ramp'" in err and "rack_position_m" in err and "row 10" in err
+    assert not out.exists()

@@ -12,13 +12,12 @@ from mbst.campaign import read_campaign
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.sindy import (
     SindyControlModel,
-    _dahl,
     _filter_tau,
-    _play,
-    fit_percent,
     residual_regression,
 )
+from mbst.discovery.terms import dahl, in_gap, play
 from mbst.identify import IdentifySettings, identify
+from mbst.metrics import fit_percent
 from mbst.preprocess import exponential_filter
 
 TORQUE = "steering_torque_nm"
@@ -84,19 +83,21 @@ def _garbled_controls(tests: list[TestResidual]) -> list[TestResidual]:
 
 def test_play_operator_opens_a_gap_of_the_given_width():
     x = np.concatenate([np.linspace(0, 1, 101), np.linspace(0.99, 0.9, 10)])
-    y = _play(x, 0.025)
+    y = play(x, 0.025)
     # engaged while driven forward; after the reversal the far side stands still until
     # the input has crossed the whole gap (0.05), then it is dragged along again
     assert np.isclose(x[100] - y[100], 0.025)
     assert np.allclose(y[100:106], y[100])
     assert np.isclose(y[-1] - x[-1], 0.025)
     assert np.all(np.abs(x - y) <= 0.025 + 1e-12)
+    gap = in_gap(x, 0.05)
+    assert gap[100] == 0 and np.all(gap[101:105] == 1) and gap[-1] == 0
 
 
 def test_dahl_state_saturates_and_is_rate_independent():
     x_fine = np.concatenate([np.linspace(0, 0.01, 1001), np.linspace(0.01, 0.0, 1001)])
     x_coarse = x_fine[::10]
-    z_fine, z_coarse = _dahl(x_fine, 1e-3), _dahl(x_coarse, 1e-3)
+    z_fine, z_coarse = dahl(x_fine, 1e-3), dahl(x_coarse, 1e-3)
     assert z_fine[1000] == pytest.approx(1.0, abs=1e-4)  # ten lengths of travel: saturated
     assert z_fine[-1] == pytest.approx(-1.0, abs=1e-4)
     # a function of travel, not of the sampling: the same state at the shared samples

@@ -160,9 +160,6 @@ class FitProblem:
         self.lb = self._to_u(lo)
         self.ub = self._to_u(hi)
         self.n_eval = 0
-        # relative finite-difference step; discovery widens it where stick-slip makes the
-        # cost rough on the scale of 1e-5
-        self.fd_step = 1e-5
         # weak prior towards the start: keeps a parameter the data cannot see where it
         # was (flagged non-identifiable) instead of letting it drift to a bound
         self.u_prior = self.u_of(self.base)
@@ -213,7 +210,7 @@ class FitProblem:
 
     def jacobian(self, u: np.ndarray) -> np.ndarray:
         """Forward differences, all perturbations of a test simulated in one batch."""
-        h = self.fd_step * np.maximum(1.0, np.abs(u))
+        h = 1e-5 * np.maximum(1.0, np.abs(u))
         # step away from the nearer bound so the perturbed point stays feasible
         sgn = np.where(u + h > self.ub, -1.0, 1.0)
         us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in range(len(u))]

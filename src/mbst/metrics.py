@@ -6,12 +6,16 @@ import numpy as np
 
 
 def fit_percent(y: np.ndarray, y_hat: np.ndarray) -> float:
-    """FIT % = 100·(1 − ‖y − ŷ‖/‖y − mean(y)‖) (campaign-format.md)."""
-    y = np.asarray(y, float)
+    """FIT % = 100·(1 − ‖y − ŷ‖/‖y − mean(y)‖) (campaign-format.md).
+
+    NaN when the measurement is constant or the prediction is not finite (a
+    model that blew up has no FIT, not −∞).
+    """
+    y, y_hat = np.asarray(y, float), np.asarray(y_hat, float)
     d = np.linalg.norm(y - y.mean())
-    if d == 0.0:
+    if d == 0.0 or not np.all(np.isfinite(y_hat)):
         return float("nan")
-    return float(100.0 * (1.0 - np.linalg.norm(y - np.asarray(y_hat, float)) / d))
+    return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / d))
 
 
 def correlation_row(y: np.ndarray, y_hat: np.ndarray) -> dict[str, float]:

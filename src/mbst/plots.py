@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from mbst.fitting import PreparedTest
+from mbst.preprocess import motion_reversals
 
 LABELS = {
     "steering_torque_nm": "steering torque [N·m]",
@@ -99,18 +100,6 @@ def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: P
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
-
-
-def motion_reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
-    """Indices where the steering direction changes, ignoring jitter while at rest."""
-    rate = np.asarray(rate, float)
-    big = np.abs(rate) > deadband * np.max(np.abs(rate))
-    if not big.any():
-        return np.zeros(0, int)
-    sign = np.where(big, np.sign(rate), 0.0)
-    idx = np.flatnonzero(sign)
-    changes = idx[1:][np.diff(sign[idx]) != 0]
-    return changes
 
 
 def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:

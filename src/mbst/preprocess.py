@@ -52,3 +52,15 @@ def angular_velocity(time_s: np.ndarray, filtered_angle_rad: np.ndarray) -> np.n
     lagged speed in the model as in the filtered torque it is compared with.
     """
     return np.gradient(np.asarray(filtered_angle_rad, dtype=np.float64), time_s)
+
+
+def motion_reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
+    """Indices where the steering direction changes, ignoring jitter while at rest."""
+    rate = np.asarray(rate, float)
+    big = np.abs(rate) > deadband * np.max(np.abs(rate))
+    if not big.any():
+        return np.zeros(0, int)
+    sign = np.where(big, np.sign(rate), 0.0)
+    idx = np.flatnonzero(sign)
+    changes = idx[1:][np.diff(sign[idx]) != 0]
+    return changes

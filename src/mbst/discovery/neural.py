@@ -52,6 +52,7 @@ from torch import nn
 from torchdiffeq import odeint
 
 from mbst.discovery.data import TestResidual
+from mbst.discovery.terms import dahl, in_gap
 from mbst.preprocess import exponential_filter
 from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS, friction_param
 
@@ -502,44 +503,6 @@ def _typical(name: str, how: str = "default") -> float:
     return float(spec.default)
 
 
-def _dahl_state(x: np.ndarray, delta: float) -> np.ndarray:
-    """Normalised Dahl friction state q(x): dq/dx = (sign(ẋ) − q)/δ, |q| ≤ 1.
-
-    δ = F_c/σ is the presliding displacement; Dahl's q replaces tanh(v/v_ε) in
-    the Coulomb term, so q − tanh(v/v_ε) is the shape a missing presliding
-    hysteresis leaves in the residual. It is a lag of sign(v) in *displacement*,
-    not in time, as in Dahl's law. Solved exactly per sample (stable for any δ).
-    """
-    q = np.zeros(len(x))
-    if delta <= 0:
-        return q
-    dx = np.diff(np.asarray(x, dtype=np.float64), prepend=x[0])
-    a = np.exp(-np.abs(dx) / delta).tolist()
-    sgn = np.sign(dx).tolist()
-    prev = 0.0
-    out = [0.0] * len(x)
-    for n in range(1, len(x)):
-        prev = sgn[n] + (prev - sgn[n]) * a[n]
-        out[n] = prev
-    return np.asarray(out)
-
-
-def _in_gap(theta: np.ndarray, width: float) -> np.ndarray:
-    """1 while a play operator of total width ``width`` driven by ``theta`` is in its gap."""
-    out = np.zeros(len(theta))
-    th = np.asarray(theta, dtype=np.float64).tolist()
-    half = 0.5 * width
-    y = th[0] if th else 0.0  # the driven side, starting centred
-    for n, x in enumerate(th):
-        if x - y > half:
-            y = x - half
-        elif x - y < -half:
-            y = x + half
-        else:
-            out[n] = 1.0 if abs(x - y) < half else 0.0
-    return out
-
-
 def _library(test: TestResidual) -> list[tuple[str, str, np.ndarray]]:
     """Candidate terms (name, catalogue key, raw signal) for one test.
 
@@ -575,7 +538,7 @@ def _library(test: TestResidual) -> list[tuple[str, str, np.ndarray]]:
             terms.append((f"exp(-(v_{comp}/{mult:g}v_s)^2)·sign(v)",
                           f"stribeck_friction:{comp}", np.exp(-(v / (mult * vs)) ** 2) * sgn))
         terms.append((f"dahl(x_{comp}) - tanh(v/v_eps)", f"presliding_hysteresis:{comp}",
-                      _dahl_state(x, fc / sigma) - sgn))
+                      dahl(x, fc / sigma) - sgn))
         if comp in ("rack", "steering_column"):
             terms.append((f"|T_tb|·sign(v_{comp})", f"load_dependent_friction:{comp}",
                           np.abs(torque) * sgn))
@@ -597,7 +560,7 @@ def _library(test: TestResidual) -> list[tuple[str, str, np.ndarray]]:
     v_p = np.gradient(theta_p, dt)
     for w in BACKLASH_WIDTHS_RAD:
         terms.append((f"gap(theta_p, w={w:g} rad)·sign(v_p)", "backlash:worm_gear",
-                      _in_gap(theta_p, w) * np.tanh(v_p / 2e-3)))
+                      in_gap(theta_p, w) * np.tanh(v_p / 2e-3)))
     # relative tie-rod velocity: dry friction in the ball joints (absent from the base model)
     dv = comps["rack"][1] - comps["tires"][1]
     if np.any(sig.get("tie_rod_force_total_n", zero)):

@@ -152,13 +152,13 @@ def akaike_weight(best: CandidateScore, scores: list[CandidateScore]) -> float:
     return float(w[same.index(best)] / w.sum())
 
 
-def cross_validate(scorer: StageScorer, cand: CandidateScore, nfev: int) -> dict:
+def cross_validate(scorer: StageScorer, cand: CandidateScore, p_base: np.ndarray,
+                   nfev: int) -> dict:
     """Leave one test of the stage out: refit base and extension on the rest, score it."""
     tests = scorer.tests
     if len(tests) < 2:
         return {"folds": 0, "wins": 0, "held_out_gain": None,
                 "note": f"the {scorer.stage} stage has one identification test: no fold"}
-    p_base, _ = scorer.base_refit()
     spec = EFFECTS[cand.key]
     wins, cb_sum, ce_sum, folds = 0, 0.0, 0.0, []
     for j, held in enumerate(tests):
@@ -289,8 +289,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
             break
         scorer = StageScorer([pt for pt in ids if pt.scenario == best.stage], best.stage, p,
                              scales, base.preid["upper"], ids_settings.decimate)
-        scorer._base_fit = (p, best.cost_base)
-        cv = cross_validate(scorer, best, settings.cv_nfev)
+        cv = cross_validate(scorer, best, p, settings.cv_nfev)
         if cv["folds"] and cv["wins"] * 2 < cv["folds"]:
             rec["reason"] = (f"{best.key} lost leave-one-test-out cross-validation "
                              f"({cv['wins']}/{cv['folds']})")
@@ -421,8 +420,7 @@ def _compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
         for pt in controls:
             for ch, y in pt.measured.items():
                 yh = tw.get(pt.id, {}).get(ch)
-                fp = fit_percent(y, yh) if yh is not None and np.all(np.isfinite(yh)) \
-                    else float("nan")
+                fp = fit_percent(y, yh) if yh is not None else float("nan")
                 rows.append({"test": pt.id, "channel": ch, "model": model, "fit_percent": fp})
 
     base.correlation, base_tw = correlate(controls, base.params)

@@ -15,24 +15,16 @@ from __future__ import annotations
 import numpy as np
 
 from mbst.discovery.data import TestResidual
+from mbst.preprocess import motion_reversals
 
 REVERSAL_WINDOW_S = 0.2
-
-
-def _reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
-    big = np.abs(rate) > deadband * np.max(np.abs(rate))
-    if not big.any():
-        return np.zeros(0, int)
-    sign = np.where(big, np.sign(rate), 0.0)
-    idx = np.flatnonzero(sign)
-    return idx[1:][np.diff(sign[idx]) != 0]
 
 
 def regions(t: TestResidual) -> dict[str, np.ndarray]:
     """Boolean masks of the state-space regions of one test."""
     n = len(t.time_s)
     after = np.zeros(n, bool)
-    for r in _reversals(t.omega_rad_per_s):
+    for r in motion_reversals(t.omega_rad_per_s):
         after[r: r + int(round(REVERSAL_WINDOW_S / t.dt_s))] = True
     speed = np.abs(t.omega_rad_per_s)
     out = {

@@ -40,6 +40,7 @@ import pysindy as ps
 from scipy.integrate import odeint
 
 from mbst.discovery.data import TestResidual
+from mbst.discovery.terms import dahl, in_gap, play
 from mbst.preprocess import exponential_filter
 from mbst.systems.eps_params import (
     EFFECTS,
@@ -53,7 +54,6 @@ __all__ = [
     "SindyControlModel",
     "SparseEvidence",
     "SparseTerm",
-    "fit_percent",
     "residual_regression",
 ]
 
@@ -87,33 +87,6 @@ def _friction_scales(elem: str) -> tuple[float, float, float]:
     sig_name = friction_param(elem, "presliding_hysteresis.stiffness")
     sigma = EFFECTS[f"presliding_hysteresis:{elem}"].default_size[sig_name]
     return veps, vs, _default(friction_param(elem, "coulomb")) / sigma
-
-
-def _play(x: np.ndarray, half_width: float) -> np.ndarray:
-    """Backlash (play) operator: the far side follows ``x`` only once the gap is closed."""
-    y = np.empty_like(x)
-    yi = float(x[0])
-    for i, xi in enumerate(x.tolist()):
-        yi = min(max(yi, xi - half_width), xi + half_width)
-        y[i] = yi
-    return y
-
-
-def _dahl(x: np.ndarray, length: float) -> np.ndarray:
-    """Normalised Dahl state z ∈ [−1, 1] driven by travel: dz/dx = (1 − z·sign(ẋ))/L.
-
-    Rate-independent memory (the friction lags by travel, not by time), stepped
-    exactly per sample so a stiff σ (tiny L) stays stable.
-    """
-    dx = np.diff(x, prepend=x[0])
-    decay = np.exp(-np.abs(dx) / length).tolist()
-    s = np.sign(dx).tolist()
-    z = np.empty_like(x)
-    zi = 0.0
-    for i in range(len(z)):
-        zi = s[i] + (zi - s[i]) * decay[i]
-        z[i] = zi
-    return z
 
 
 @dataclass(frozen=True)
@@ -198,7 +171,7 @@ class _Library:
         # 1 while the pinion has travelled less than the gap width since its last reversal
         def make() -> np.ndarray:
             h = 0.5 * w
-            return (np.abs(c["pinion"] - _play(c["pinion"], h)) < h * (1 - 1e-9)).astype(float)
+            return in_gap(c["pinion"], 2 * h)
 
         return c.cached(("gate", w), make)
 
@@ -236,7 +209,7 @@ class _Library:
             for f in _DAHL_GRID:
                 L = dahl0 * f
                 add(f"dahl(x_{e}, L={L:.3g})-tanh", f"presliding_hysteresis:{e}", +1,
-                    lambda c, e=e, L=L: c.cached(("dahl", e, L), lambda: _dahl(c[f"x_{e}"], L))
+                    lambda c, e=e, L=L: c.cached(("dahl", e, L), lambda: dahl(c[f"x_{e}"], L))
                     - sgn(c, e))
             for tau in _LAG_TAUS_S:
                 add(f"lag(tanh(v_{e}), {tau * 1e3:.0f}ms)-tanh", f"presliding_hysteresis:{e}", +1,
@@ -285,7 +258,7 @@ class _Library:
             add(f"gap(pinion, w={w:g})·tanh(v_rack)", "backlash:rack_pinion", -1,
                 lambda c, w=w: self._gate(c, w) * sgn(c, "rack"))
             add(f"pinion-play(pinion, w={w:g})", "backlash:rack_pinion", 0,
-                lambda c, w=w: c["pinion"] - _play(c["pinion"], w / 2))
+                lambda c, w=w: c["pinion"] - play(c["pinion"], w / 2))
 
         # torsion-bar limit stop: torque beyond a threshold, in the direction of twist
         for f in _STOP_FRACTIONS:
@@ -624,15 +597,6 @@ def residual_regression(tests: list[TestResidual], channel: str = TORQUE, *,
 # --------------------------------------------------------------------------------------
 # SINDy-only comparison model
 # --------------------------------------------------------------------------------------
-
-
-def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float:
-    """FIT % = 100·(1 − ‖y − ŷ‖/‖y − ȳ‖); NaN if the prediction is not finite."""
-    y, yhat = np.asarray(y, float), np.asarray(yhat, float)
-    if not np.all(np.isfinite(yhat)):
-        return float("nan")
-    den = np.linalg.norm(y - y.mean())
-    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / den)) if den > 0 else float("nan")
 
 
 class _SimulationFailed(RuntimeError):
