@@ -24,9 +24,11 @@ report: "workflow/report/workflow.rst"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/bench.smk"
+include: "workflow/rules/import.smk"
 include: "workflow/rules/identify.smk"
 include: "workflow/rules/discover.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/plan.smk"
 
 
 rule all:
@@ -38,3 +40,5 @@ rule all:
         expand("results/{campaign}/identify/figures", campaign=CAMPAIGNS),
         discover_outputs(),
         "results/summary.csv",
+        # campaign planning (workflow/rules/plan.smk), only when `plan: enabled: true`
+        ["results/plan/plan.json"] if config.get("plan", {}).get("enabled", False) else [],

@@ -77,14 +77,47 @@ def _cmd_discover(args: argparse.Namespace) -> int:
         raise UsageError(f"--max-effects must be ≥ 0, got {args.max_effects}")
     if not 0 < args.min_gain < 1:
         raise UsageError(f"--min-gain must be in (0, 1), got {args.min_gain}")
+    if args.min_aic_drop < 0:
+        raise UsageError(f"--min-aic-drop must be ≥ 0, got {args.min_aic_drop}")
     settings = DiscoverSettings(
         identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart),
         max_effects=args.max_effects, min_relative_gain=args.min_gain,
+        min_aic_drop=args.min_aic_drop,
         sparse=not args.no_sparse, neural=not args.no_neural, progress=not args.quiet,
     )
     result = run_discover(camp, args.out, settings)
     if not args.quiet:
         print(result.summary())
+    return 0
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from mbst.plan.config import PlanError, load_plan
+    from mbst.plan.run import run_plan
+
+    try:
+        cfg = load_plan(args.plan)
+    except PlanError as exc:
+        raise UsageError(str(exc)) from None
+    proof = False if args.no_proof else (True if args.proof else None)
+    result = run_plan(cfg, args.out, progress=not args.quiet, proof=proof)
+    if not args.quiet:
+        print(result.summary())
+        print(f"wrote {args.out}/campaign.yaml, plan.md, tables and figures")
+    return 0
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from mbst.importers import import_emps
+
+    if args.format != "emps":
+        raise UsageError(f"unknown format '{args.format}' (known: emps)")
+    if Path(args.out).exists() and not args.overwrite:
+        raise UsageError(f"{args.out} already exists; pass --overwrite to replace it")
+    camp = import_emps(args.data_dir, args.out, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"wrote {camp} (system prismatic-axis; DATA_EMPS for identification, "
+              "DATA_EMPS_PULSES as the held-out control)")
     return 0
 
 
@@ -150,9 +183,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
     p.add_argument("--min-gain", type=float, default=0.10,
                    help="share of a stage's residual cost an effect must remove (default 0.10)")
+    p.add_argument("--min-aic-drop", type=float, default=100.0,
+                   help="ΔAIC an effect must reach, as −value (default 100, calibrated on "
+                   "the EPS bench)")
     p.add_argument("--no-sparse", action="store_true", help="skip the sparse regression")
     p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
     p.set_defaults(func=_cmd_discover)
+
+    p = add("plan", "plan a campaign before running it: sensors, cut-outs and inputs that "
+            "identify every unknown at the lowest cost (seed 000 'simulation for testing')")
+    p.add_argument("plan", help="planning config (mbst-plan/1), e.g. config/plan.yaml")
+    p.add_argument("--out", required=True, help="output folder: campaign.yaml skeleton, "
+                   "plan.md, ranking tables, figures")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--proof", action="store_true",
+                   help="run the planned-vs-naive bench proof (default: the config's proof.enabled)")
+    g.add_argument("--no-proof", action="store_true", help="skip the bench proof")
+    p.set_defaults(func=_cmd_plan)
+
+    p = add("import", "convert a public benchmark's files into a campaign")
+    p.add_argument("format", choices=["emps"], help="emps: the EMPS prismatic-axis benchmark")
+    p.add_argument("data_dir", help="folder with DATA_EMPS.mat and DATA_EMPS_PULSES.mat")
+    p.add_argument("--out", required=True, help="campaign folder to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing campaign")
+    p.set_defaults(func=_cmd_import)
 
     p = add("report", "collect per-campaign results into one table (results/summary.csv)")
     p.add_argument("kind", choices=["summary"], help="what to write")

@@ -14,14 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.signal import savgol_filter
 
 from mbst.campaign import Campaign, TestSpec
 from mbst.preprocess import exponential_filter
-from mbst.systems import eps
-from mbst.systems import eps_kernel as K
-from mbst.systems.eps_channels import OUTPUT_CHANNELS
-from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS
+from mbst.systems.model import ModelDefinition
+
+INPUT_WINDOW_S = 0.1
 
 
 @dataclass
@@ -30,12 +28,23 @@ class PreparedTest:
 
     spec: TestSpec
     time_s: np.ndarray
-    angle_in_rad: np.ndarray
-    omega_rad_per_s: np.ndarray
+    input_signal: np.ndarray
+    input_rate: np.ndarray
     measured: dict[str, np.ndarray]
     dt_s: float
     tau_s: float
     raw: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    model: ModelDefinition | None = field(default=None, repr=False)
+    inputs: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def angle_in_rad(self) -> np.ndarray:
+        """The steering rig's name for the driving input (the measured angle)."""
+        return self.input_signal
+
+    @property
+    def omega_rad_per_s(self) -> np.ndarray:
+        return self.input_rate
 
     @property
     def id(self) -> str:
@@ -46,54 +55,30 @@ class PreparedTest:
         return self.spec.scenario
 
 
-INPUT_WINDOW_S = 0.1
-
-
-def smooth_input(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WINDOW_S
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Zero-phase smoothed angle and its rate (Savitzky–Golay, cubic).
-
-    The column friction switches within v_ε = 2e-3 rad/s; 0.05° of angle
-    noise differentiated at 2 ms gives ~0.2 rad/s, which would flip its sign
-    at random near every reversal. A local cubic over ``window_s`` removes
-    the noise without lag, and its analytic derivative is the rate.
-    """
-    n = int(round(window_s / dt_s)) | 1
-    if n < 5 or len(angle_rad) <= n:
-        ang = np.asarray(angle_rad, float).copy()
-        return ang, np.gradient(ang, dt_s)
-    ang = savgol_filter(angle_rad, n, 3, mode="interp")
-    rate = savgol_filter(angle_rad, n, 3, deriv=1, delta=dt_s, mode="interp")
-    return ang, rate
-
-
 def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
                  input_window_s: float = INPUT_WINDOW_S) -> PreparedTest:
     """Filter a test's channels and derive the model input.
 
-    The model is driven by the measured angle smoothed without lag
-    (``smooth_input``); simulated outputs then get the same causal
-    exponential filter as the measured ones, so both sides carry the same
-    phase lag (eps-model.md, "Preprocessing").
+    The family's model says how its input is derived (the EPS rig: the
+    measured angle smoothed without lag); simulated outputs then get the same
+    causal exponential filter as the measured ones, so both sides carry the
+    same phase lag (eps-model.md, "Preprocessing").
     """
+    model = campaign.family.model()
     df = campaign.frame(spec.id)
     t = df["time_s"].to_numpy(float)
     dt = float((t[-1] - t[0]) / (len(t) - 1))
-    ang = df["steering_angle_rad"].to_numpy(float)
-    ang_in, rate = smooth_input(ang, dt, input_window_s)
+    signal, rate, inputs = model.prepare_inputs(df, dt, spec, input_window_s)
     measured = {}
     raw = {}
-    for ch in OUTPUT_CHANNELS:
+    for ch in model.output_channels:
         if ch in df.columns:
             raw[ch] = df[ch].to_numpy(float)
             measured[ch] = exponential_filter(raw[ch], dt, tau_s)
-    return PreparedTest(spec, t, ang_in, rate, measured, dt, tau_s, raw)
+    return PreparedTest(spec, t, signal, rate, measured, dt, tau_s, raw, model, inputs)
 
 
-def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
-    """Simulated channels of a prepared test, filtered like their measured twins."""
-    sim = eps.simulate(pt.scenario, pt.spec.motor, pt.time_s, pt.angle_in_rad, p,
-                       pt.omega_rad_per_s)
+def _filtered(pt: PreparedTest, sim: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     out = {ch: exponential_filter(sim[ch], pt.dt_s, pt.tau_s) for ch in pt.measured}
     for k, v in sim.items():
         if k.startswith("internal."):
@@ -101,18 +86,18 @@ def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
+def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
+    """Simulated channels of a prepared test, filtered like their measured twins.
+
+    Internal signals (``internal.*``) come unfiltered.
+    """
+    return _filtered(pt, pt.model.simulate_batch(pt, np.asarray(p, float)[None])[0])
+
+
 def _twins_batch(pt: PreparedTest, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
-    """Simulate many parameter vectors on one test in parallel (numba prange)."""
-    n_sub = max(eps.substeps(p, pt.scenario, pt.dt_s) for p in ps)
-    scen, mode = K.SCENARIO_CODES[pt.scenario], K.MOTOR_CODES[pt.spec.motor]
-    x0s = np.stack([eps.initial_state(p, pt.scenario, float(pt.angle_in_rad[0])) for p in ps])
-    raw = K.simulate_batch(pt.angle_in_rad, pt.omega_rad_per_s, np.ascontiguousarray(ps), scen,
-                           mode, n_sub, x0s, pt.dt_s)
-    out = []
-    for k in range(len(ps)):
-        sens = eps.sensors_from_raw(raw[k], ps[k], pt.scenario)
-        out.append({ch: exponential_filter(sens[ch], pt.dt_s, pt.tau_s) for ch in pt.measured})
-    return out
+    """Simulate many parameter vectors on one test in parallel (the family's batch simulator)."""
+    return [{ch: v for ch, v in _filtered(pt, sim).items() if not ch.startswith("internal.")}
+            for sim in pt.model.simulate_batch(pt, ps)]
 
 
 def channel_scales(tests: list[PreparedTest]) -> dict[str, float]:
@@ -150,8 +135,9 @@ class FitProblem:
         self.base = np.array(base, dtype=float)
         self.scales = scales
         self.decimate = max(1, int(decimate))
-        self.idx = np.array([PARAM_INDEX[n] for n in self.free], dtype=int)
-        specs = [PARAM_SPECS[i] for i in self.idx]
+        self.model = tests[0].model if tests else None
+        self.idx = np.array([self.model.param_index[n] for n in self.free], dtype=int)
+        specs = [self.model.param_specs[i] for i in self.idx]
         lo = np.array([(lower or {}).get(s.name, s.lower) for s in specs])
         hi = np.array([(upper or {}).get(s.name, s.upper) for s in specs])
         self.log = np.array([s.log_scale and s.lower > 0 for s in specs])

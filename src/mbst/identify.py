@@ -31,51 +31,7 @@ from mbst.fitting import (
 )
 from mbst.metrics import correlation_row
 from mbst.outputs import atomic_output_dir, write_json
-from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS, as_dict, vector_from
-
-# What each scenario isolates (eps-model.md "Scenarios"), in cascade order.
-CASCADE: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("blocked_column", (
-        "torsion_bar.stiffness_nm_per_rad",
-        "steering_column.coulomb_nm",
-        "steering_column.viscous_nms_per_rad",
-        "offset.steering_torque_nm",
-    )),
-    ("free_tie_rods", (
-        "worm_gear.stiffness_nm_per_rad",
-        "worm_gear.damping_nms_per_rad",
-        "motor.coulomb_nm",
-        "motor.viscous_nms_per_rad",
-        "rack.coulomb_n",
-        "rack.viscous_ns_per_m",
-        "offset.rack_position_m",
-        "offset.motor_angle_rad",
-        "offset.motor_current_a",
-    )),
-    ("blocked_rack", (
-        "tie_rods.stiffness_n_per_m",
-        "tie_rods.damping_ns_per_m",
-        "offset.tie_rod_force_left_n",
-        "offset.tie_rod_force_right_n",
-    )),
-    ("suspended", (
-        "tires.bearing_coulomb_n",
-        "tires.bearing_viscous_ns_per_m",
-    )),
-    ("tires_on_ground", (
-        "tires.coulomb_n",
-        "tires.viscous_ns_per_m",
-        "tires.centring_stiffness_n_per_m",
-    )),
-)
-OFFSET_CHANNEL = {
-    "offset.steering_torque_nm": "steering_torque_nm",
-    "offset.rack_position_m": "rack_position_m",
-    "offset.tie_rod_force_left_n": "tie_rod_force_left_n",
-    "offset.tie_rod_force_right_n": "tie_rod_force_right_n",
-    "offset.motor_angle_rad": "motor_angle_rad",
-    "offset.motor_current_a": "motor_current_a",
-}
+from mbst.systems.model import ModelDefinition
 
 
 @dataclass
@@ -117,6 +73,7 @@ class IdentifyResult:
     wall_s: float
     prepared: dict[str, PreparedTest] = field(repr=False, default_factory=dict)
     twins: dict[str, dict[str, np.ndarray]] = field(repr=False, default_factory=dict)
+    model: ModelDefinition | None = field(repr=False, default=None)
 
     def summary(self) -> str:
         lines = [f"identified '{self.campaign}' in {self.wall_s:.1f} s "
@@ -127,108 +84,6 @@ class IdentifyResult:
         for w in self.warnings:
             lines.append(f"  warning: {w}")
         return "\n".join(lines)
-
-
-# -------------------------------------------------------------------------------------
-# pre-identification from signal processing (seed 001, step 1)
-# -------------------------------------------------------------------------------------
-def _loop_half_width(pt: PreparedTest) -> float | None:
-    """Half the torque gap between the rising and falling branches near zero angle."""
-    th = pt.angle_in_rad
-    w = pt.omega_rad_per_s
-    tq = pt.measured["steering_torque_nm"]
-    amp = np.max(np.abs(th))
-    if amp <= 0:
-        return None
-    near = np.abs(th) < 0.1 * amp
-    up = near & (w > 0.2 * np.max(np.abs(w)))
-    dn = near & (w < -0.2 * np.max(np.abs(w)))
-    if up.sum() < 5 or dn.sum() < 5:
-        return None
-    # compare at equal angle: remove the stiffness slope with a joint linear fit
-    a = np.column_stack([th[up | dn], np.where(up, 1.0, -1.0)[up | dn], np.ones((up | dn).sum())])
-    coef, *_ = np.linalg.lstsq(a, tq[up | dn], rcond=None)
-    return float(abs(coef[1]))
-
-
-def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -> dict:
-    """Starting values and friction bounds from simple signal processing.
-
-    Returns a dict of named estimates with the numbers they came from; the
-    caller updates the parameter vector with ``values`` and the bounds with
-    ``upper``.
-    """
-    out: dict = {"values": {}, "upper": {}, "notes": []}
-    r = p[PARAM_INDEX["pinion_radius_m"]]
-    n_gear = p[PARAM_INDEX["worm_gear_ratio"]]
-    veps = p[PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]]
-    tests = [pt for pt in tests if "steering_torque_nm" in pt.measured]
-    bc = [pt for pt in tests if pt.scenario == "blocked_column"]
-    col_fc = None
-    if bc:
-        # T = k_t·θ + F_c·tanh(ω/v_ε) + b·ω + offset, linear in the unknowns
-        rows, ys = [], []
-        for pt in bc:
-            th = pt.angle_in_rad
-            om = pt.omega_rad_per_s
-            rows.append(np.column_stack([th, np.tanh(om / veps), om, np.ones_like(th)]))
-            ys.append(pt.measured["steering_torque_nm"])
-        a, y = np.vstack(rows), np.concatenate(ys)
-        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-        r2 = 1 - np.sum((y - a @ coef) ** 2) / np.sum((y - y.mean()) ** 2)
-        kt, col_fc, col_b, off = (float(c) for c in coef)
-        col_fc = max(col_fc, 1e-3)
-        out["values"].update({
-            "torsion_bar.stiffness_nm_per_rad": kt,
-            "steering_column.coulomb_nm": col_fc,
-            "steering_column.viscous_nms_per_rad": max(col_b, 0.0),
-            "offset.steering_torque_nm": off,
-        })
-        out["blocked_column_regression"] = {
-            "tests": [pt.id for pt in bc], "samples": len(y), "r2": float(r2),
-            "torsion_bar_stiffness_nm_per_rad": kt, "column_coulomb_nm": col_fc,
-            "column_viscous_nms_per_rad": col_b, "torque_offset_nm": off,
-        }
-    ft = [pt for pt in tests if pt.scenario == "free_tie_rods"]
-    if ft:
-        # the slowest test shows friction with the least inertia and viscous torque
-        slow = min(ft, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
-        ab = _loop_half_width(slow)
-        if ab is not None:
-            budget = max(ab - (col_fc or 0.0), 0.05 * ab)
-            out["values"]["rack.coulomb_n"] = 0.7 * budget / r
-            out["values"]["motor.coulomb_nm"] = 0.3 * budget / n_gear
-            # seed 001: the loop width bounds the whole friction (2× margin for viscous/inertia)
-            out["upper"]["rack.coulomb_n"] = 2.0 * ab / r
-            out["upper"]["motor.coulomb_nm"] = 2.0 * ab / n_gear
-            out["hysteresis_free_tie_rods"] = {
-                "test": slow.id, "half_width_nm": ab, "column_share_nm": col_fc,
-                "rack_coulomb_start_n": 0.7 * budget / r,
-                "motor_coulomb_start_nm": 0.3 * budget / n_gear,
-            }
-        if "rack_position_m" in slow.measured:
-            th = slow.angle_in_rad
-            x = slow.measured["rack_position_m"]
-            slope = float(np.polyfit(th, x, 1)[0])
-            out["rack_to_angle_ratio"] = {
-                "test": slow.id, "slope_m_per_rad": slope, "pinion_radius_m": float(r),
-                "ratio_to_known_radius": slope / r,
-            }
-            if abs(slope / r - 1) > 0.15:
-                out["notes"].append(
-                    f"rack/angle slope {slope:.3e} m/rad differs by "
-                    f"{100 * (slope / r - 1):+.0f} % from the known pinion radius {r:.3e} m"
-                )
-    tg = [pt for pt in tests if pt.scenario == "tires_on_ground"]
-    if tg and ft:
-        slow3 = min(tg, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
-        ab3 = _loop_half_width(slow3)
-        ab2 = out.get("hysteresis_free_tie_rods", {}).get("half_width_nm")
-        if ab3 is not None and ab2 is not None and ab3 > ab2:
-            out["values"]["tires.coulomb_n"] = (ab3 - ab2) / r
-            out["hysteresis_tires_on_ground"] = {"test": slow3.id, "half_width_nm": ab3,
-                                                 "tires_coulomb_start_n": (ab3 - ab2) / r}
-    return out
 
 
 # -------------------------------------------------------------------------------------
@@ -270,9 +125,11 @@ def run_cascade(
     id_tests = [prepared[s.id] for s in id_specs]
     scales = channel_scales(id_tests)
 
-    p = vector_from({k: v for k, v in campaign.known.items() if k in PARAM_INDEX},
+    model = campaign.family.model()
+    PARAM_INDEX, PARAM_SPECS = model.param_index, model.param_specs
+    p = model.vector_from({k: v for k, v in campaign.known.items() if k in PARAM_INDEX},
                     base=base if base is not None else None)
-    preid = pre_identify(campaign, id_tests, p)
+    preid = model.pre_identify(campaign, id_tests, p)
     for k, v in preid["values"].items():
         spec = PARAM_SPECS[PARAM_INDEX[k]]
         p[PARAM_INDEX[k]] = float(np.clip(v, spec.lower, spec.upper))
@@ -282,25 +139,24 @@ def run_cascade(
     stages: list[StageResult] = []
     carried: list[str] = []
     rng = np.random.default_rng(settings.seed)
-    for scenario, isolates in CASCADE:
+    for scenario, isolates in model.cascade:
         tests = [pt for pt in id_tests if pt.scenario == scenario]
         wanted = list(carried) + [n for n in isolates if n not in fixed]
         wanted += list((extra_free or {}).get(scenario, ()))
         if not tests:
-            # a later scenario informs these too, except bearing friction (suspended only)
-            carried = [n for n in wanted
-                       if not n.startswith("offset.") and not n.startswith("tires.bearing")]
+            # a later scenario may inform these too (the model says which)
+            carried = [n for n in wanted if model.carries_over(n)]
             continue
         channels_here = {ch for pt in tests for ch in pt.measured}
         free = []
         for n in dict.fromkeys(wanted):
             if n in fixed:
                 continue
-            if n.startswith("offset.") and OFFSET_CHANNEL[n] not in channels_here:
+            if n.startswith("offset.") and model.offset_channels[n] not in channels_here:
                 continue
             free.append(n)
         # an offset seen for the first time here, estimated by a later stage's channels
-        for n, ch in OFFSET_CHANNEL.items():
+        for n, ch in model.offset_channels.items():
             if ch in channels_here and n not in fixed and n not in free:
                 free.append(n)
         carried = []
@@ -389,7 +245,7 @@ def identify(campaign: Campaign, settings: IdentifySettings | None = None) -> Id
     id_fit, id_twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
     twins.update(id_twins)
     return IdentifyResult(campaign.name, p, stages, preid, warnings, corr, id_fit,
-                          time.perf_counter() - t0, prepared, twins)
+                          time.perf_counter() - t0, prepared, twins, campaign.family.model())
 
 
 def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
@@ -402,7 +258,7 @@ def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
             at_bound[n] = st.at_bound[n]
             ident[n] = st.identifiable[n]
     params = {}
-    for i, spec in enumerate(PARAM_SPECS):
+    for i, spec in enumerate(result.model.param_specs):
         if spec.kind == "effect" and spec.name not in stage_of:
             continue
         params[spec.name] = {
@@ -433,7 +289,8 @@ def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
         "preidentification": result.preid,
         "warnings": result.warnings,
         "wall_s": result.wall_s,
-        "vector": as_dict(result.params),
+        "system": result.model.name,
+        "vector": result.model.as_dict(result.params),
     }
 
 

@@ -20,8 +20,10 @@ LABELS = {
     "tie_rod_force_right_n": "tie-rod force right [N]",
     "motor_angle_rad": "motor angle [rad]",
     "motor_current_a": "motor current [A]",
+    "position_m": "position [mm]",
+    "motor_force_n": "motor force [N]",
 }
-SCALE = {"rack_position_m": 1e3}
+SCALE = {"rack_position_m": 1e3, "position_m": 1e3}
 MODEL_STYLE = {
     "base": dict(color="tab:red", lw=1.1, ls="--"),
     "extended": dict(color="tab:green", lw=1.1, ls="-"),
@@ -76,28 +78,43 @@ def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Pat
     _save(fig, path)
 
 
+def _loop_x(pt: PreparedTest, key: str) -> np.ndarray:
+    if key == "input":
+        return pt.input_signal
+    if key.startswith("rate:"):
+        return np.gradient(pt.measured[key[5:]], pt.dt_s)
+    return pt.measured[key]
+
+
 def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:
-    """Steering angle vs steering torque (seed 000 Fig. 6/8, seed 001 Fig. 11–16)."""
-    tests = [pt for pt in tests if "steering_torque_nm" in pt.measured]
-    n = len(tests)
+    """The family's loop: steering angle vs torque for EPS (seed 000 Fig. 6/8, seed 001
+    Fig. 11–16), velocity vs motor force (the friction characteristic) for an axis.
+    """
+    spec = tests[0].model.hysteresis if tests and tests[0].model else None
+    if spec is None:
+        return
+    xkey, ych, xlabel, ylabel, xscale = spec
+    need = xkey[5:] if xkey.startswith("rate:") else (None if xkey == "input" else xkey)
+    tests = [pt for pt in tests if ych in pt.measured and (need is None or need in pt.measured)]
+    n = max(len(tests), 1)
     cols = min(4, n)
     rows = int(np.ceil(n / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(3.8 * cols, 3.3 * rows), squeeze=False)
     for k, pt in enumerate(tests):
         ax = axes[k // cols][k % cols]
-        ang = np.degrees(pt.angle_in_rad)
-        ax.plot(ang, pt.measured["steering_torque_nm"], color="black", lw=1.2, label="measured")
+        x = xscale * _loop_x(pt, xkey)
+        ax.plot(x, pt.measured[ych], color="black", lw=1.2, label="measured")
         for name, twins in models.items():
             if pt.id in twins:
-                ax.plot(ang, twins[pt.id]["steering_torque_nm"], label=name,
-                        **MODEL_STYLE.get(name, {}))
+                ax.plot(x, twins[pt.id][ych], label=name, **MODEL_STYLE.get(name, {}))
         ax.set_title(f"{pt.id}\n{pt.scenario}, {pt.spec.role}", fontsize=8)
-        ax.set_xlabel("steering angle [deg]", fontsize=8)
-        ax.set_ylabel("steering torque [N·m]", fontsize=8)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
         ax.grid(alpha=0.3)
-    for k in range(n, rows * cols):
+    for k in range(len(tests), rows * cols):
         axes[k // cols][k % cols].set_axis_off()
-    axes[0][0].legend(fontsize=7)
+    if tests:
+        axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
 

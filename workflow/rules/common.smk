@@ -15,6 +15,7 @@ from mbst.provenance import source_hash
 CAMPAIGNS = list(config["campaigns"])
 BENCH_CAMPAIGNS = [c for c, entry in config["campaigns"].items() if "bench" in entry]
 PATH_CAMPAIGNS = [c for c, entry in config["campaigns"].items() if "path" in entry]
+IMPORT_CAMPAIGNS = [c for c, entry in config["campaigns"].items() if "import" in entry]
 
 # Snakemake does not track Python code imported by a command. This hash of
 # src/mbst/**/*.py is a param of every job (params.code): edit the package and
@@ -44,6 +45,8 @@ def campaign_dir(wildcards):
     entry = campaign_entry(wildcards)
     if "path" in entry:
         return str(entry["path"])
+    if "import" in entry:
+        return f"results/{wildcards.campaign}/import/campaign"
     return f"results/{wildcards.campaign}/bench/campaign"
 
 
@@ -91,6 +94,16 @@ def discover_skip_args(wildcards):
     if not config["discover"]["neural_residual"]:
         flags.append("--no-neural")
     return " ".join(flags)
+
+
+def discover_setting(name):
+    """A discover margin: the campaign's own override, else the global value."""
+
+    def get(wildcards):
+        own = campaign_entry(wildcards).get("discover", {})
+        return own.get(name, config["discover"][name])
+
+    return get
 
 
 def discover_outputs():

@@ -47,8 +47,9 @@ rule discover:
         tau_s=config["preprocess"]["tau_s"],
         seed=config["identify"]["seed"],
         multistart=config["identify"]["multistart"],
-        max_effects=config["discover"]["max_effects"],
-        min_gain=config["discover"]["min_relative_gain"],
+        max_effects=discover_setting("max_effects"),
+        min_gain=discover_setting("min_relative_gain"),
+        min_aic_drop=discover_setting("min_aic_drop"),
         skip=discover_skip_args,
         code=CODE_VERSION,
     conda:
@@ -59,7 +60,8 @@ rule discover:
         " OPENBLAS_NUM_THREADS={threads} NUMBA_NUM_THREADS={threads}"
         " mbst discover {params.campaign_dir:q} --out {params.tmpdir:q} --quiet"
         " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart}"
-        " --max-effects {params.max_effects} --min-gain {params.min_gain} {params.skip}"
+        " --max-effects {params.max_effects} --min-gain {params.min_gain}"
+        " --min-aic-drop {params.min_aic_drop} {params.skip}"
         " > {log:q} 2>&1"
         " && rm -rf {params.outdir:q}"
         " && mv {params.tmpdir:q} {params.outdir:q}"

@@ -15,14 +15,16 @@ def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
     controls = [result.base.prepared[t] for t in dict.fromkeys(result.comparison.test)]
     if not controls:
         controls = [result.base.prepared[r.id] for r in result.residual_tests[:2]]
-    chans = [c for c in ("steering_torque_nm", "rack_position_m")
-             if any(c in pt.measured for pt in controls)]
+    model = controls[0].model
+    chans = [c for c in model.output_channels if any(c in pt.measured for pt in controls)][:2]
     fig, axes = plt.subplots(len(controls), len(chans), figsize=(5.2 * len(chans),
                              2.9 * len(controls)), squeeze=False)
     models = {m: tw for m, tw in result.twins.items() if m in ("base", "extended", "true")}
     for i, pt in enumerate(controls):
         base_tw = result.twins.get("base", {}).get(pt.id) or result.base.twins[pt.id]
-        err = np.abs(pt.measured["steering_torque_nm"] - base_tw["steering_torque_nm"])
+        # the base model's error, each channel in units of its spread
+        err = sum(np.abs(pt.measured[c] - base_tw[c]) / (np.std(pt.measured[c]) or 1.0)
+                  for c in chans if c in pt.measured)
         revs = motion_reversals(pt.omega_rad_per_s)
         win = int(round(half_window_s / pt.dt_s))
         if len(revs):

@@ -30,7 +30,6 @@ from mbst.campaign import Campaign
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.structure import (
-    STAGE_FREE,
     CandidateScore,
     StageScorer,
     compensating_parameters,
@@ -41,7 +40,7 @@ from mbst.fitting import PreparedTest, _twins_batch, channel_scales, solve
 from mbst.identify import IdentifyResult, IdentifySettings, correlate, run_cascade
 from mbst.metrics import fit_percent
 from mbst.outputs import atomic_output_dir, write_json
-from mbst.systems.eps_params import EFFECTS, PARAM_INDEX, PARAM_SPECS, as_dict, vector_from
+from mbst.systems.model import ModelDefinition
 
 FORMAT = "mbst-discovery/1"
 
@@ -107,6 +106,7 @@ class DiscoveryResult:
     neural_model: object = field(repr=False, default=None)
     residual_tests: list[TestResidual] = field(repr=False, default_factory=list)
     settings: DiscoverSettings = field(repr=False, default_factory=DiscoverSettings)
+    benchmark: dict | None = None
 
     def summary(self) -> str:
         lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
@@ -120,6 +120,9 @@ class DiscoveryResult:
         means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
         for m, v in means.items():
             lines.append(f"  control FIT mean {m:<9} {v:6.1f} %")
+        for key, pub in (self.benchmark or {}).get("published", {}).items():
+            lines.append(f"  {key:<40} ours {self.benchmark.get(key, float('nan')):9.4g}  "
+                         f"published {pub['value']:.4g} ({pub['model']})")
         return "\n".join(lines)
 
 
@@ -159,7 +162,7 @@ def cross_validate(scorer: StageScorer, cand: CandidateScore, p_base: np.ndarray
     if len(tests) < 2:
         return {"folds": 0, "wins": 0, "held_out_gain": None,
                 "note": f"the {scorer.stage} stage has one identification test: no fold"}
-    spec = EFFECTS[cand.key]
+    spec = scorer.model.effects[cand.key]
     wins, cb_sum, ce_sum, folds = 0, 0.0, 0.0, []
     for j, held in enumerate(tests):
         train = [pt for k, pt in enumerate(tests) if k != j]
@@ -181,13 +184,13 @@ def _score_record(s: CandidateScore) -> dict:
             "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2)}
 
 
-def _truth_params(campaign: Campaign) -> np.ndarray | None:
+def _truth_params(campaign: Campaign, model: ModelDefinition) -> np.ndarray | None:
     """The bench's ground truth, when the campaign came from ``mbst bench``."""
     path = Path(campaign.path).parent / "truth.json"
     if not path.is_file():
         return None
     try:
-        return vector_from(json.loads(path.read_text())["params"])
+        return model.vector_from(json.loads(path.read_text())["params"])
     except (KeyError, ValueError, json.JSONDecodeError):
         return None
 
@@ -237,6 +240,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     base = _identify_base(campaign, ids_settings)
     timings["identify_s"] = time.perf_counter() - t0
     prepared = base.prepared
+    model = base.model
     id_specs = campaign.identification_tests()
     ids = [prepared[s.id] for s in id_specs]
     scales = channel_scales(ids)
@@ -244,7 +248,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     locations = residual_locations(id_res)
     regions = dominant_regions(locations)
 
-    stage_params = [n for _, names in STAGE_FREE.items() for n in names]
+    stage_params = [n for _, names in model.cascade for n in names]
     p = base.params.copy()
     cost_cur, res_base = total_cost(ids, p, scales, ids_settings.decimate)
     n_eff_all = effective_samples(res_base)
@@ -257,7 +261,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     bar = _progress_bar(settings.progress)
     shortlist: set[str] | None = None
     for rnd in range(settings.max_effects):
-        reset = compensating_parameters(p, stage_params)
+        reset = compensating_parameters(p, stage_params, model)
 
         def tick(phase: str, sc: CandidateScore, _bar=bar, _rnd=rnd) -> None:
             if _bar is not None:
@@ -265,7 +269,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
                 _bar.update(1 if phase == "screen" else 0)
 
         if bar is not None:
-            bar.reset(total=len(shortlist) if shortlist is not None else len(EFFECTS))
+            bar.reset(total=len(shortlist) if shortlist is not None else len(model.effects))
         scores = structure_test(ids, p, scales, base.preid["upper"], exclude=set(accepted),
                                 decimate=ids_settings.decimate, refine=settings.refine,
                                 reset=reset, only=shortlist, progress=tick)
@@ -295,7 +299,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
                              f"({cv['wins']}/{cv['folds']})")
             break
         # extension: the whole cascade refitted with the effect free in its stage
-        spec = EFFECTS[best.key]
+        spec = model.effects[best.key]
         trial_free = dict(extra_free)
         trial_free[best.stage] = tuple(trial_free.get(best.stage, ())) + spec.free
         p_ext, _, _, _, _ = run_cascade(campaign, ids_settings, base=best.params,
@@ -324,19 +328,19 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     # independent evidence from the regressions (identification tests only)
     sparse_ev = neural_ev = None
     neural_model = None
-    if settings.sparse:
+    if settings.sparse and "sparse" in model.evidence_methods:
         t0 = time.perf_counter()
         sparse_ev = _sparse_evidence(id_res)
         timings["sparse_s"] = time.perf_counter() - t0
-    if settings.neural:
+    if settings.neural and "neural" in model.evidence_methods:
         t0 = time.perf_counter()
         neural_model, neural_ev = _neural_evidence(id_res, settings)
         timings["neural_s"] = time.perf_counter() - t0
 
     findings = []
     for best, runner, cv, weight in pending:
-        spec = EFFECTS[best.key]
-        params = {h: float(p[PARAM_INDEX[n]]) for h, n in spec.headline.items()}
+        spec = model.effects[best.key]
+        params = {h: float(p[model.param_index[n]]) for h, n in spec.headline.items()}
         cv_frac = cv["wins"] / cv["folds"] if cv.get("folds") else 1.0
         findings.append(Finding(
             effect=spec.effect, component=spec.component, parameters=params,
@@ -349,7 +353,8 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     t0 = time.perf_counter()
     comparison, twins = _compare(campaign, base, p, id_res, settings, neural_model)
     timings["compare_s"] = time.perf_counter() - t0
-    k_added = sum(len(EFFECTS[k].free) for k in accepted)
+    benchmark = model.benchmark(base, p) if model.benchmark is not None else None
+    k_added = sum(len(model.effects[k].free) for k in accepted)
     gain = {
         "control_fit_percent_mean": _mean_gain(comparison),
         "aic_delta": float(n_eff_all * math.log(cost_cur / cost_base_all) + 2 * k_added)
@@ -363,6 +368,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         locations=locations, sparse=sparse_ev, neural=neural_ev, comparison=comparison,
         gain=gain, wall_s=time.perf_counter() - t_start, timings=timings, twins=twins,
         neural_model=neural_model, residual_tests=id_res, settings=settings,
+        benchmark=benchmark,
     )
 
 
@@ -372,7 +378,7 @@ def _identify_base(campaign: Campaign, settings: IdentifySettings) -> IdentifyRe
     p, stages, preid, warnings, prepared = run_cascade(campaign, settings)
     id_fit, twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
     return IdentifyResult(campaign.name, p, stages, preid, warnings, id_fit.iloc[0:0], id_fit,
-                          time.perf_counter() - t0, prepared, twins)
+                          time.perf_counter() - t0, prepared, twins, campaign.family.model())
 
 
 def _progress_bar(enabled: bool):
@@ -380,7 +386,7 @@ def _progress_bar(enabled: bool):
         return None
     from tqdm import tqdm
 
-    return tqdm(total=len(EFFECTS), unit="candidate", leave=False)
+    return tqdm(unit="candidate", leave=False)
 
 
 def _sparse_evidence(id_res: list[TestResidual]) -> dict | None:
@@ -429,14 +435,14 @@ def _compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
     _, ext_tw = correlate(controls, p_ext)
     add("extended", ext_tw)
     ctrl_res = [residual_data(pt, base.params, base.twins[pt.id]) for pt in controls]
-    if settings.sparse:
+    if settings.sparse and "sparse" in base.model.evidence_methods:
         from mbst.discovery.sindy import SindyControlModel
 
         sm = SindyControlModel().fit(id_res)
         add("sindy", {r.id: sm.predict(r) for r in ctrl_res})
     if neural_model is not None:
         add("neural", {r.id: neural_model.predict(r) for r in ctrl_res})
-    truth = _truth_params(campaign)
+    truth = _truth_params(campaign, base.model)
     if truth is not None:
         _, true_tw = correlate(controls, truth)
         add("true", true_tw)
@@ -461,9 +467,10 @@ def _control_fit(df: pd.DataFrame, model: str) -> dict:
     return out
 
 
-def _model_params(p: np.ndarray, effects: list[str]) -> dict[str, float]:
-    active = {n for k in effects for n in EFFECTS[k].free}
-    return {s.name: float(p[i]) for i, s in enumerate(PARAM_SPECS)
+def _model_params(p: np.ndarray, effects: list[str], model: ModelDefinition
+                  ) -> dict[str, float]:
+    active = {n for k in effects for n in model.effects[k].free}
+    return {s.name: float(p[i]) for i, s in enumerate(model.param_specs)
             if s.kind in ("base", "offset", "known") or s.name in active}
 
 
@@ -473,10 +480,10 @@ def discovery_record(result: DiscoveryResult) -> dict:
     return {
         "format": FORMAT,
         "campaign": result.campaign,
-        "base": {"params": _model_params(result.base.params, []),
+        "base": {"params": _model_params(result.base.params, [], result.base.model),
                  "control_fit_percent": _control_fit(result.comparison, "base")},
         "findings": [f.record() for f in result.findings],
-        "extended": {"params": _model_params(result.extended_params, keys),
+        "extended": {"params": _model_params(result.extended_params, keys, result.base.model),
                      "control_fit_percent": _control_fit(result.comparison, "extended")},
         "gain": result.gain,
         "acceptance": {"min_relative_gain": result.settings.min_relative_gain,
@@ -492,7 +499,8 @@ def discovery_record(result: DiscoveryResult) -> dict:
         },
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
         "wall_s": round(result.wall_s, 2),
-        "vector": as_dict(result.extended_params),
+        "system": result.base.model.name,
+        "vector": result.base.model.as_dict(result.extended_params),
     }
 
 
@@ -500,6 +508,8 @@ def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
     from mbst.discovery import figures
 
     write_json(out / "discovery.json", discovery_record(result))
+    if result.benchmark is not None:
+        write_json(out / "benchmark.json", result.benchmark)
     result.comparison.to_csv(out / "comparison.csv", index=False, float_format="%.4f")
     rows = [{"round": r["round"], **{k: v for k, v in c.items() if k != "headline"},
              "headline": json.dumps(c["headline"])} for r in result.rounds
@@ -537,7 +547,28 @@ def markdown_summary(result: DiscoveryResult) -> str:
               "|---|---|" + "---|" * len(models)]
     for (t, ch), row in wide.iterrows():
         lines.append(f"| {t} | {ch} | " + " | ".join(f"{row[m]:.1f}" for m in models) + " |")
+    if result.benchmark and "published" in result.benchmark:
+        lines += benchmark_table(result.benchmark)
     return "\n".join(lines) + "\n"
+
+
+def benchmark_table(bench: dict) -> list[str]:
+    """The family's published figures of merit next to ours (benchmark.json)."""
+    base = bench.get("base", {})
+    authors = bench.get("authors_parameters_here", {})
+    lines = ["", f"## Published benchmark measures on `{bench.get('test')}`", "",
+             "| measure | published | source | authors' parameters, our code | base | extended |",
+             "|---|---|---|---|---|---|"]
+    for key, pub in bench["published"].items():
+        ext = bench.get(key)
+        b = base.get(key)
+        a = authors.get(key)
+        fmt = lambda v: "–" if v is None else f"{v:.4g}"
+        lines.append(f"| {key} | {pub['value']:.4g} | {pub['model']} | {fmt(a)} | {fmt(b)} | "
+                     f"{fmt(ext)} |")
+    lines += ["", "Errors in %, lower is better; FIT in %, higher is better. Definitions in "
+              "`benchmark.json`."]
+    return lines
 
 
 def run_discover(campaign: Campaign, out_dir: str | Path,

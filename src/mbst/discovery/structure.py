@@ -25,36 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbst.fitting import FitProblem, PreparedTest, _twins_batch, solve
-from mbst.identify import CASCADE, OFFSET_CHANNEL
-from mbst.systems.eps_params import (
-    EFFECT_CATALOGUE,
-    PARAM_INDEX,
-    PARAM_SPECS,
-    EffectSpec,
-)
-
-# Where a component acts (eps-model.md "Scenarios"): the earliest of these with
-# identification tests is the stage that isolates it.
-COMPONENT_SCENARIOS: dict[str, tuple[str, ...]] = {
-    "steering_column": ("blocked_column", "free_tie_rods", "blocked_rack", "suspended",
-                        "tires_on_ground"),
-    "torsion_bar": ("blocked_column", "free_tie_rods", "blocked_rack", "suspended",
-                    "tires_on_ground"),
-    "worm_gear": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
-    "motor": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
-    "rack_pinion": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
-    "rack": ("free_tie_rods", "blocked_rack", "suspended", "tires_on_ground"),
-    "tie_rods": ("blocked_rack", "suspended", "tires_on_ground"),
-    "tires": ("tires_on_ground",),
-}
-STAGE_FREE = dict(CASCADE)
-
-# The search keeps the Stribeck velocity above 0.3× its typical value: below, the
-# implicit friction step needs h < m/slope and one tire simulation costs minutes.
-SEARCH_LOWER = {
-    e.headline["stribeck_velocity"]: 0.3 * e.default_size[e.headline["stribeck_velocity"]]
-    for e in EFFECT_CATALOGUE if e.effect == "stribeck_friction"
-}
+from mbst.systems.model import EffectSpec, ModelDefinition
 
 # Starting grid of each headline parameter, as multiples of the catalogue's realistic size
 # (or absolute values where a multiple makes no sense).
@@ -91,19 +62,21 @@ class CandidateScore:
         return 1.0 - self.cost / self.cost_base if self.cost_base > 0 else 0.0
 
 
-def stage_for(spec: EffectSpec, scenarios_with_tests: set[str]) -> str | None:
+def stage_for(spec: EffectSpec, scenarios_with_tests: set[str], model: ModelDefinition
+              ) -> str | None:
     """The first cascade stage with identification tests in which the component acts."""
-    for scenario, _ in CASCADE:
-        if scenario in COMPONENT_SCENARIOS[spec.component] and scenario in scenarios_with_tests:
+    for scenario, _ in model.cascade:
+        if scenario in model.component_scenarios[spec.component] and \
+                scenario in scenarios_with_tests:
             return scenario
     return None
 
 
-def start_grid(spec: EffectSpec) -> list[dict[str, float]]:
+def start_grid(spec: EffectSpec, model: ModelDefinition) -> list[dict[str, float]]:
     """Starting points over the effect's own parameters."""
     axes = []
     for name in spec.free:
-        ps = PARAM_SPECS[PARAM_INDEX[name]]
+        ps = model.spec(name)
         size = spec.default_size[name]
         if name.endswith("asymmetric_friction.ratio"):
             vals = (0.6, 0.8, 1.25, 1.6)
@@ -127,8 +100,8 @@ def start_grid(spec: EffectSpec) -> list[dict[str, float]]:
     return [dict(zip(spec.free, combo, strict=True)) for combo in itertools.product(*axes)]
 
 
-def compensating_parameters(p: np.ndarray, names: list[str], factor: float = 3.0
-                            ) -> dict[str, float]:
+def compensating_parameters(p: np.ndarray, names: list[str], model: ModelDefinition,
+                            factor: float = 3.0) -> dict[str, float]:
     """Base parameters far from their typical value, with that typical value.
 
     A base model that lacks an effect hides it by driving parameters to
@@ -138,10 +111,10 @@ def compensating_parameters(p: np.ndarray, names: list[str], factor: float = 3.0
     """
     out = {}
     for n in names:
-        spec = PARAM_SPECS[PARAM_INDEX[n]]
+        spec = model.spec(n)
         if spec.kind != "base" or spec.default <= 0:
             continue
-        v = p[PARAM_INDEX[n]]
+        v = p[model.param_index[n]]
         if not (spec.default / factor <= v <= spec.default * factor):
             out[n] = spec.default
     return out
@@ -207,9 +180,11 @@ class StageScorer:
         self.decimate = decimate
         self.max_nfev = max_nfev
         self.starts = starts
+        self.model = model = tests[0].model
         channels = {ch for pt in tests for ch in pt.measured}
-        self.stage_free = [n for n in STAGE_FREE[stage]
-                           if not n.startswith("offset.") or OFFSET_CHANNEL[n] in channels]
+        self.stage_free = [n for n in model.stage_free()[stage]
+                           if not n.startswith("offset.")
+                           or model.offset_channels[n] in channels]
         # a base model that lacks an effect compensates with the stage's parameters (k_g
         # 14x too soft for backlash or Stribeck): the grid also tries every point with
         # them back at their typical starting values, where the effect can take over
@@ -221,7 +196,7 @@ class StageScorer:
                 tests: list[PreparedTest] | None = None) -> FitProblem:
         tests = tests if tests is not None else self.tests
         return FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p0,
-                          self.scales, lower=SEARCH_LOWER, upper=self.upper,
+                          self.scales, lower=self.model.search_lower, upper=self.upper,
                           decimate=self.decimate)
 
     def costs(self, ps: np.ndarray, tests: list[PreparedTest] | None = None
@@ -263,11 +238,11 @@ class StageScorer:
         t0 = time.perf_counter()
         p_base, cost_base = self.base_refit()
         if start is None:
-            grid = start_grid(spec)
+            grid = start_grid(spec, self.model)
             ps = np.repeat(p_base[None], len(grid), axis=0)
             for i, g in enumerate(grid):
                 for n, v in g.items():
-                    ps[i, PARAM_INDEX[n]] = v
+                    ps[i, self.model.param_index[n]] = v
             grid_cost = self.costs(ps).sum(axis=1)
             order = np.argsort(grid_cost)
             starts = [ps[i] for i in order[: self.starts]]
@@ -279,7 +254,7 @@ class StageScorer:
                 # rest of the stage must move with the effect before the cost drops)
                 q = p_base.copy()
                 for n, v in {**self.reset, **spec.default_size}.items():
-                    q[PARAM_INDEX[n]] = v
+                    q[self.model.param_index[n]] = v
                 starts.append(q)
         else:
             starts = [start.params]
@@ -296,7 +271,8 @@ class StageScorer:
             tests=[pt.id for pt in self.tests], free=free, k_effect=len(spec.free),
             cost_base=cost_base, cost=cost, n_eff=n_eff,
             aic_delta=aic_delta(cost, cost_base, n_eff, len(spec.free)), params=fr.p,
-            headline={h: float(fr.p[PARAM_INDEX[n]]) for h, n in spec.headline.items()},
+            headline={h: float(fr.p[self.model.param_index[n]])
+                      for h, n in spec.headline.items()},
             grid_best=grid_best, grid_gain=grid_gain, grid_s=t_grid,
             wall_s=time.perf_counter() - t0 + (start.wall_s if start else 0.0),
             per_test_cost={pt.id: float(c) for pt, c in zip(self.tests, per_test, strict=True)},
@@ -305,9 +281,9 @@ class StageScorer:
         )
 
 
-def candidates(exclude: set[str] = frozenset()) -> list[EffectSpec]:
+def candidates(model: ModelDefinition, exclude: set[str] = frozenset()) -> list[EffectSpec]:
     """Every catalogue pair not yet in the model."""
-    return [e for e in EFFECT_CATALOGUE if e.key not in exclude]
+    return [e for e in model.catalogue if e.key not in exclude]
 
 
 def structure_test(
@@ -332,15 +308,16 @@ def structure_test(
     remove, best first. (The Akaike difference is not comparable across stages:
     a stage with more effective samples inflates it.)
     """
+    model = id_tests[0].model
     scenarios = {pt.scenario for pt in id_tests}
     scorers: dict[str, StageScorer] = {}
     n_eff: dict[str, float] = {}
     specs: dict[str, EffectSpec] = {}
     out = []
-    for spec in candidates(exclude):
+    for spec in candidates(model, exclude):
         if only is not None and spec.key not in only:
             continue
-        stage = stage_for(spec, scenarios)
+        stage = stage_for(spec, scenarios, model)
         if stage is None:
             continue
         if stage not in scorers:

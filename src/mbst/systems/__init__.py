@@ -9,6 +9,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mbst.systems.model import ModelDefinition
 
 ALL_SCENARIOS = "*"
 
@@ -45,12 +49,20 @@ class SystemFamily:
     output_channels: tuple[str, ...] = ()
     motor_modes: tuple[str, ...] = ("passive", "assist")
     extras: dict = field(default_factory=dict)
+    # imported on first use: reading a campaign must not compile a simulator
+    model_factory: Callable[[], ModelDefinition] | None = None
 
     def channel(self, name: str) -> ChannelSpec:
         for ch in self.channels:
             if ch.name == name:
                 return ch
         raise KeyError(name)
+
+    def model(self) -> ModelDefinition:
+        """The family's model definition (parameters, catalogue, cascade, simulator)."""
+        if self.model_factory is None:
+            raise KeyError(f"system '{self.name}' has no model definition")
+        return self.model_factory()
 
     def required_channels(self, scenario: str) -> list[str]:
         return [ch.name for ch in self.channels if ch.required_for(scenario)]
@@ -76,4 +88,4 @@ def get_system(name: str) -> SystemFamily:
 
 def _load_builtin() -> None:
     # Imported lazily so that reading a campaign does not compile the simulator.
-    from mbst.systems import eps_channels  # noqa: F401
+    from mbst.systems import eps_channels, prismatic_channels  # noqa: F401

@@ -43,7 +43,14 @@ def eps_family() -> SystemFamily:
         scenarios=SCENARIOS,
         channels=CHANNELS,
         output_channels=OUTPUT_CHANNELS,
+        model_factory=_eps_model,
     )
+
+
+def _eps_model():
+    from mbst.systems.eps_model import EPS_MODEL
+
+    return EPS_MODEL
 
 
 register(SYSTEM_NAME, eps_family)

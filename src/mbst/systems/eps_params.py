@@ -12,9 +12,9 @@ Names are ``component.quantity_unit`` for the nominal model and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+
+from mbst.systems.model import EffectSpec, ParamSpec
 
 FRICTION_ELEMENTS = ("steering_column", "motor", "rack", "tires")
 COMPONENTS = (
@@ -27,26 +27,6 @@ COMPONENTS = (
     "tie_rods",
     "tires",
 )
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    """One model parameter.
-
-    ``kind`` is ``known`` (from campaign.yaml, fixed), ``base`` (identified in
-    the nominal model), ``effect`` (belongs to a catalogue effect), ``fixed``
-    (numerical or assumed constant) or ``offset`` (a campaign-wide sensor
-    offset).
-    """
-
-    name: str
-    unit: str
-    default: float
-    lower: float
-    upper: float
-    kind: str
-    component: str
-    log_scale: bool = False
 
 
 # Friction block layout, identical for the four elements, so the kernel can
@@ -200,26 +180,6 @@ def as_dict(p: np.ndarray, kinds: tuple[str, ...] | None = None) -> dict[str, fl
 # --------------------------------------------------------------------------------------
 # Effect catalogue (eps-model.md, "Effect catalogue")
 # --------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class EffectSpec:
-    """One (effect, component) pair of the catalogue.
-
-    ``headline`` maps the spec's headline parameter names to model parameter
-    names; ``free`` lists the parameters a refit frees when the effect is
-    inserted; ``default_size`` is a realistic size for the bench.
-    """
-
-    effect: str
-    component: str
-    headline: dict[str, str]
-    free: tuple[str, ...]
-    default_size: dict[str, float]
-
-    @property
-    def key(self) -> str:
-        return f"{self.effect}:{self.component}"
 
 
 def _friction_effects(elem: str) -> list[EffectSpec]:

@@ -1,0 +1,54 @@
+"""EMPS (real data): wall time of import + discovery, and the published measures beside ours.
+
+Run: ``python benchmarks/emps.py [DATA_DIR]`` (default ``../shared/data/real/emps``).
+Also prints the prismatic bench's calibration: the largest share of the stage
+cost any candidate removes on clean simulated campaigns (the acceptance margin
+``discover.min_relative_gain`` must sit above it).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from mbst.campaign import read_campaign
+from mbst.discovery.pipeline import DiscoverSettings, discover
+from mbst.importers import import_emps
+from mbst.systems.prismatic_bench import run_prismatic_bench
+
+KEYS = ("force_error_percent_test", "closed_loop_position_error_percent_test",
+        "closed_loop_force_error_percent_test", "open_loop_fit_percent_test")
+
+
+def main() -> None:
+    data = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("../shared/data/real/emps")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        camp = read_campaign(import_emps(data, Path(tmp) / "emps"))
+        t_import = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = discover(camp, DiscoverSettings(min_aic_drop=30.0, max_effects=3))
+        t_disc = time.perf_counter() - t0
+        print(f"import {t_import:.1f} s, discover {t_disc:.1f} s; findings: "
+              + (", ".join(f"{f.effect}:{f.component} {f.parameters}" for f in res.findings)
+                 or "none"))
+        b = res.benchmark
+        print(f"{'measure (test run)':<42} {'published':>10} {'authors here':>12} "
+              f"{'base':>9} {'extended':>9}")
+        for k in KEYS:
+            print(f"{k:<42} {b['published'][k]['value']:>10.4g} "
+                  f"{b['authors_parameters_here'][k]:>12.4g} {b['base'][k]:>9.4g} {b[k]:>9.4g}")
+        gains = []
+        for seed in (1, 2, 3):
+            c = read_campaign(run_prismatic_bench(Path(tmp) / f"clean{seed}", {}, seed=seed))
+            r = discover(c, DiscoverSettings())
+            gains.append(max(s["relative_gain"] for s in r.rounds[0]["candidates"]))
+        print("clean prismatic bench, largest candidate gain per seed: "
+              + ", ".join(f"{g:.3f}" for g in gains))
+    print(f"emps: {t_disc:.1f} s per discovery")
+
+
+if __name__ == "__main__":
+    main()

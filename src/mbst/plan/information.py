@@ -1,0 +1,115 @@
+"""Fisher information of a chosen set of sensors and tests.
+
+With white sensor noise the information on θ = ln(parameters) of a set of
+tests is Σ JᵀJ/σ² over every logged sample (the analysis stores it already
+divided by σ², at the analysis rate; ``rate_factor`` scales it to the
+campaign's logging rate). A sensor offset is one unknown per sensor for
+the whole campaign (eps-model.md), so it is eliminated per sensor over all
+tests together: Σ JᵀJ − (Σ J)(Σ J)ᵀ/n, the Schur complement of the offset.
+Coordinates are relative (ln θ): a standard error of 0.1 is 10 %.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mbst.plan.config import PlanConfig
+from mbst.plan.sensitivity import Sensitivity
+from mbst.plan.sensors import SENSORS
+
+RIDGE = 1e-9  # information (1/σ²) added so that an unseen parameter has a finite, huge σ
+
+
+def logged_mask(sens: Sensitivity) -> np.ndarray:
+    """(C, S): whether sensor s is logged in the scenario of cell c (it moves there)."""
+    return np.array([[cell.scenario in SENSORS[s].exists_in for s in sens.sensors]
+                     for cell in sens.cells])
+
+
+def per_sensor_sums(sens: Sensitivity, counts: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Σ over tests (with multiplicity ``counts`` (C,)) of Gram, column sums and samples.
+
+    Returns (K, S, P, P), (K, S, P), (S,).
+    """
+    counts = np.asarray(counts, float)
+    a = np.einsum("c,kcspq->kspq", counts, sens.gram)
+    b = np.einsum("c,kcsp->ksp", counts, sens.colsum)
+    n = (counts[:, None] * sens.n_samples[:, None] * logged_mask(sens)).sum(axis=0)
+    return a, b, n
+
+
+def offset_eliminated(a: np.ndarray, b: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Per-sensor information with the campaign-wide offset removed (Schur complement)."""
+    nn = np.where(n > 0, n, 1.0)
+    return a - np.einsum("...sp,...sq->...spq", b, b) / nn[..., :, None, None]
+
+
+def fisher(sens: Sensitivity, sensors: list[str] | np.ndarray, counts: np.ndarray,
+           rate_factor: float) -> np.ndarray:
+    """(K, P, P) Fisher information at every sweep point of a sensor set and test counts."""
+    mask = _sensor_mask(sens, sensors)
+    a, b, n = per_sensor_sums(sens, counts)
+    eff = offset_eliminated(a, b, n)
+    return rate_factor * np.einsum("s,kspq->kpq", mask.astype(float), eff)
+
+
+def _sensor_mask(sens: Sensitivity, sensors) -> np.ndarray:
+    sensors = list(sensors)
+    if sensors and isinstance(sensors[0], (bool, np.bool_)):
+        return np.asarray(sensors, bool)
+    return np.array([s in sensors for s in sens.sensors])
+
+
+def covariance(f: np.ndarray) -> np.ndarray:
+    """Inverse of the information (batched), with a tiny ridge for unseen directions."""
+    p = f.shape[-1]
+    return np.linalg.inv(f + RIDGE * np.eye(p))
+
+
+def relative_std(f: np.ndarray) -> np.ndarray:
+    """Predicted relative standard errors (…, P) from information (…, P, P) in ln θ."""
+    return np.sqrt(np.maximum(np.diagonal(covariance(f), axis1=-2, axis2=-1), 0.0))
+
+
+def bits_gained(f: np.ndarray, prior_info: np.ndarray) -> np.ndarray:
+    """Information gained over the prior of the ranges, in bits: ½·log₂ det(I + Λ₀⁻¹F)."""
+    _, ld = np.linalg.slogdet(f + np.diag(prior_info))
+    return 0.5 * (ld - np.sum(np.log(prior_info))) / np.log(2.0)
+
+
+def prior_information(cfg: PlanConfig) -> np.ndarray:
+    """1/σ² of a uniform prior in ln θ over each range."""
+    return np.array([1.0 / u.prior_std_log**2 for u in cfg.unknowns])
+
+
+@dataclass
+class Identifiability:
+    """What the information of a set says, at the centre and worst over the sweep."""
+
+    relative_std: np.ndarray  # (K, P)
+    worst_relative_std: np.ndarray  # (P,)
+    correlation: np.ndarray  # (P, P) at the centre of the ranges
+    condition_number: float  # of the information at the centre (ln θ coordinates)
+    bits: float  # mean over the sweep
+    identifiable: np.ndarray  # (P,) bool: worst σ ≤ target
+
+    def max_abs_correlation(self) -> float:
+        c = np.abs(self.correlation - np.diag(np.diag(self.correlation)))
+        return float(c.max()) if c.size else 0.0
+
+
+def identifiability(f: np.ndarray, target: float, prior_info: np.ndarray) -> Identifiability:
+    """Standard errors, correlations and conditioning of information ``f`` (K, P, P)."""
+    cov = covariance(f)
+    rel = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    c0 = cov[0]
+    d = np.sqrt(np.maximum(np.diag(c0), 1e-300))
+    corr = c0 / np.outer(d, d)
+    ev = np.linalg.eigvalsh(f[0])
+    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+    worst = rel.max(axis=0)
+    return Identifiability(rel, worst, corr, cond, float(np.mean(bits_gained(f, prior_info))),
+                           worst <= target)

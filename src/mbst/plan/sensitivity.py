@@ -1,0 +1,267 @@
+"""Sensitivity of every candidate measurement to every unknown parameter.
+
+For each cell (scenario × input) the simulator runs, in one numba batch,
+every parameter vector the analysis needs:
+
+- K sweep points over the ranges (the centre plus a Latin hypercube in
+  ln θ, seeded), each with central differences in ln θ of every unknown
+  (local sensitivity dy/dln θ, so all parameters are compared per relative
+  change);
+- each unknown at the low and high end of its range with the others at the
+  centre (seed 000's "swept across a reasonable range ... whether they could
+  capture a response change": the global response swing);
+- each catalogue effect at its realistic size at the centre (for ``effects``).
+
+Everything downstream (Fisher information, selection, effect separation)
+needs only the Gram matrices of these signals, so the raw time series are
+reduced per cell and dropped.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+from tqdm import tqdm
+
+from mbst.plan.config import PlanConfig
+from mbst.plan.inputs import profile, test_input
+from mbst.plan.sensors import INPUT_SENSOR, sensor_signals
+from mbst.systems import eps
+from mbst.systems import eps_kernel as K
+from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, EffectSpec
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One candidate test: a scenario candidate with an input candidate."""
+
+    scenario_id: str
+    input_id: str
+    scenario: str
+    motor: str
+    input: dict  # absolute input entry (campaign.yaml)
+
+    @property
+    def label(self) -> str:
+        return f"{self.scenario_id}/{self.input_id}"
+
+
+@dataclass
+class Sensitivity:
+    """Reduced results of the analysis over the candidate grid.
+
+    Arrays are indexed [k sweep point, c cell, s sensor, p unknown]; signals
+    are divided by the effective noise rms ``sigma`` (sensor noise combined
+    with ``model_error_fraction`` of the channel's swing in that test), so
+    sums over samples are Fisher information at the analysis rate.
+    """
+
+    unknowns: list[str]
+    sensors: list[str]
+    cells: list[Cell]
+    points: np.ndarray  # (K, P) parameter values of the sweep points
+    gram: np.ndarray  # (K, C, S, P, P) Σ J Jᵀ
+    colsum: np.ndarray  # (K, C, S, P) Σ J (for the campaign-wide offset)
+    n_samples: np.ndarray  # (C,)
+    rms: np.ndarray  # (K, C, S, P) rms of dy/dln θ per sample, noise units
+    swing: np.ndarray  # (C, S, P) rms of y(high) − y(low), noise units
+    effects: list[str]  # catalogue keys
+    effect_gram: np.ndarray  # (C, S, P+E, P+E) per-test centred Gram of [J(centre), d_effect]
+    sigma: np.ndarray  # (C, S) noise used: sensor noise ⊕ model-error share of the swing
+    nominal: dict[str, dict[str, np.ndarray]] = field(repr=False, default_factory=dict)
+    n_simulations: int = 0
+    wall_s: float = 0.0
+
+    def cell_index(self, scenario_id: str, input_id: str) -> int:
+        for c, cell in enumerate(self.cells):
+            if cell.scenario_id == scenario_id and cell.input_id == input_id:
+                return c
+        raise KeyError(f"{scenario_id}/{input_id}")
+
+
+def candidate_cells(cfg: PlanConfig) -> list[Cell]:
+    """Every scenario × input pair, in config order."""
+    cells = []
+    for sc in cfg.scenarios:
+        for inp in cfg.inputs:
+            spec = test_input(inp.kind, sc.amplitude_deg * inp.amplitude_scale, inp.options)
+            cells.append(Cell(sc.id, inp.id, sc.scenario, sc.motor, spec))
+    return cells
+
+
+def sweep_points(cfg: PlanConfig) -> np.ndarray:
+    """(K, P) values: the centre, then a Latin hypercube in ln θ (deterministic in the seed)."""
+    lo = np.log([u.low for u in cfg.unknowns])
+    hi = np.log([u.high for u in cfg.unknowns])
+    k = cfg.sweep_points
+    pts = [np.array([u.nominal for u in cfg.unknowns])]
+    if k > 1:
+        rng = np.random.default_rng([cfg.seed, 6])
+        m = k - 1
+        u = np.stack([(rng.permutation(m) + rng.random(m)) / m for _ in cfg.unknowns], axis=1)
+        pts += list(np.exp(lo + u * (hi - lo)))
+    return np.stack(pts)
+
+
+def _effect_vector(base: np.ndarray, spec: EffectSpec) -> np.ndarray:
+    q = base.copy()
+    for name, v in spec.default_size.items():
+        q[PARAM_INDEX[name]] = v
+    return q
+
+
+def _run(cell: Cell, ang: np.ndarray, om: np.ndarray, dt: float, ps: np.ndarray,
+         n_sub: int) -> np.ndarray:
+    scen, mode = K.SCENARIO_CODES[cell.scenario], K.MOTOR_CODES[cell.motor]
+    x0s = np.stack([eps.initial_state(p, cell.scenario, float(ang[0])) for p in ps])
+    return K.simulate_batch(ang, om, np.ascontiguousarray(ps), scen, mode, n_sub, x0s, dt)
+
+
+def _run_one(cell: Cell, ang: np.ndarray, om: np.ndarray, dt: float, p: np.ndarray,
+             n_sub: int) -> np.ndarray:
+    scen, mode = K.SCENARIO_CODES[cell.scenario], K.MOTOR_CODES[cell.motor]
+    x0 = eps.initial_state(p, cell.scenario, float(ang[0]))
+    return K.simulate_dt(ang, om, p, scen, mode, n_sub, x0, dt)
+
+
+def _signals(cell: Cell, raw: np.ndarray, ps: np.ndarray, ang: np.ndarray,
+             sensors: list[str], noise: np.ndarray) -> np.ndarray:
+    """(runs, S, N) noise-normalised sensor signals."""
+    out = np.empty((len(ps), len(sensors), raw.shape[1]))
+    for r in range(len(ps)):
+        sig = sensor_signals(raw[r], ps[r], cell.scenario, ang)
+        for s, name in enumerate(sensors):
+            out[r, s] = sig[name] / noise[s]
+    return out
+
+
+def effect_list(cfg: PlanConfig) -> list[EffectSpec]:
+    if not cfg.effects_enabled:
+        return []
+    if cfg.effects_list is None:
+        return list(EFFECT_CATALOGUE)
+    return [e for e in EFFECT_CATALOGUE if e.key in cfg.effects_list]
+
+
+def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
+    """Simulate the candidate grid and reduce it to sensitivities and Gram matrices.
+
+    Parameters
+    ----------
+    cfg
+        The validated planning config.
+    progress
+        Show a tqdm bar over the cells.
+
+    Returns
+    -------
+    Sensitivity
+    """
+    t0 = time.perf_counter()
+    cells = candidate_cells(cfg)
+    sensors = [s.name for s in cfg.sensors]
+    noise = np.array([s.noise for s in cfg.sensors])
+    idx = np.array([PARAM_INDEX[n] for n in cfg.unknown_names])
+    base = cfg.nominal_vector()
+    points = sweep_points(cfg)
+    kk, pp, ss, cc = len(points), len(idx), len(sensors), len(cells)
+    effects = effect_list(cfg)
+    ee = len(effects)
+    d = cfg.fd_step
+    lo = np.array([u.low for u in cfg.unknowns])
+    hi = np.array([u.high for u in cfg.unknowns])
+
+    # the parameter vectors of one cell (identical for every cell)
+    vecs = []
+    for k in range(kk):
+        centre = base.copy()
+        centre[idx] = points[k]
+        vecs.append(centre)
+        for j in range(pp):
+            for sgn in (1.0, -1.0):
+                q = centre.copy()
+                q[idx[j]] *= np.exp(sgn * d)
+                vecs.append(q)
+    for j in range(pp):
+        for bound in (lo[j], hi[j]):
+            q = vecs[0].copy()
+            q[idx[j]] = bound
+            vecs.append(q)
+    vecs = np.stack(vecs)
+    n_sweep = kk * (2 * pp + 1)
+    eff_vecs = [_effect_vector(vecs[0], e) for e in effects]
+
+    gram = np.zeros((kk, cc, ss, pp, pp))
+    colsum = np.zeros((kk, cc, ss, pp))
+    rms = np.zeros((kk, cc, ss, pp))
+    swing = np.zeros((cc, ss, pp))
+    n_samples = np.zeros(cc, dtype=int)
+    effect_gram = np.zeros((cc, ss, pp + ee, pp + ee))
+    nominal: dict[str, dict[str, np.ndarray]] = {}
+    sigma = np.zeros((cc, ss))
+    ones = np.ones(ss)
+    n_sims = 0
+    pool = ThreadPoolExecutor(max_workers=max(1, numba.get_num_threads()))
+    for c, cell in enumerate(tqdm(cells, desc="plan: sensitivity", unit="cell",
+                                  disable=not progress)):
+        t, ang = profile(cell.input, cfg.analysis_rate_hz)
+        dt = float(t[1] - t[0])
+        om = np.gradient(ang, dt)
+        n_samples[c] = len(t)
+        # one step size for every base-model run of the cell: a finite difference
+        # between runs with different sub-steps would measure the integrator
+        n_sub = max(eps.substeps(q, cell.scenario, dt) for q in vecs)
+        y = _signals(cell, _run(cell, ang, om, dt, vecs, n_sub), vecs, ang, sensors, ones)
+        n_sims += len(vecs)
+        nominal[cell.label] = {"time_s": t, "steering_angle_rad": ang,
+                               **{s: y[0, i] for i, s in enumerate(sensors)}}
+        # the model is never exactly right: a share of each channel's own swing in this
+        # test counts as noise too, so no plan leans on a signal far below the model error
+        swing_rms = y[0].std(axis=1)
+        sig_eff = np.sqrt(noise**2 + (cfg.model_error_fraction * swing_rms) ** 2)
+        sig_eff[sensors.index(INPUT_SENSOR)] = noise[sensors.index(INPUT_SENSOR)]
+        sigma[c] = sig_eff
+        y /= sig_eff[None, :, None]
+        j0 = None
+        for k in range(kk):
+            b = k * (2 * pp + 1)
+            plus, minus = y[b + 1: b + 1 + 2 * pp: 2], y[b + 2: b + 2 + 2 * pp: 2]
+            jac = (plus - minus) / (2.0 * d)  # (P, S, N)
+            jac = np.transpose(jac, (1, 2, 0))  # (S, N, P)
+            gram[k, c] = np.einsum("snp,snq->spq", jac, jac)
+            colsum[k, c] = jac.sum(axis=1)
+            rms[k, c] = np.sqrt(np.mean(jac**2, axis=1))
+            if k == 0:
+                j0 = jac
+        sw = y[n_sweep + 1:: 2] - y[n_sweep:: 2]  # (P, S, N): high − low
+        swing[c] = np.sqrt(np.mean(sw**2, axis=2)).T
+        if ee:
+            # effect signatures against the centre run at the effect's own step size;
+            # single runs of different step sizes go to a thread pool (the kernel
+            # releases the GIL), so both cores stay busy
+            subs = [eps.substeps(q, cell.scenario, dt) for q in eff_vecs]
+            runs = [(vecs[0], ns) for ns in sorted(set(subs))] + list(zip(eff_vecs, subs))
+            raws = list(pool.map(lambda job: _run_one(cell, ang, om, dt, *job), runs))
+            n_sims += len(runs)
+            centre = {ns: _signals(cell, raws[i][None], vecs[:1], ang, sensors, sig_eff)[0]
+                      for i, ns in enumerate(sorted(set(subs)))}
+            off = len(centre)
+            sig = np.zeros((ss, len(t), ee))
+            for e in range(ee):
+                ye = _signals(cell, raws[off + e][None], eff_vecs[e][None], ang, sensors,
+                              sig_eff)
+                sig[:, :, e] = ye[0] - centre[subs[e]]
+            v = np.concatenate([j0, sig], axis=2)  # (S, N, P+E)
+            v = v - v.mean(axis=1, keepdims=True)  # per-test sensor offset removed
+            effect_gram[c] = np.einsum("sna,snb->sab", v, v)
+    pool.shutdown()
+    return Sensitivity(
+        unknowns=list(cfg.unknown_names), sensors=sensors, cells=cells, points=points,
+        gram=gram, colsum=colsum, n_samples=n_samples, rms=rms, swing=swing,
+        effects=[e.key for e in effects], effect_gram=effect_gram, sigma=sigma, nominal=nominal,
+        n_simulations=n_sims, wall_s=time.perf_counter() - t0,
+    )

@@ -1,0 +1,160 @@
+"""A model definition: parameters, effect catalogue, cascade and simulator of one family.
+
+A model is data plus functions (python-control style), not a class
+hierarchy. Identification, discovery and the reports ask the campaign's
+family for its ``ModelDefinition`` and never import a particular rig, so a
+second system family (the prismatic axis of the EMPS benchmark) runs through
+the same code paths as the steering rig.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One model parameter.
+
+    ``kind`` is ``known`` (from campaign.yaml, fixed), ``base`` (identified in
+    the nominal model), ``effect`` (belongs to a catalogue effect), ``fixed``
+    (numerical or assumed constant) or ``offset`` (a campaign-wide sensor
+    offset).
+    """
+
+    name: str
+    unit: str
+    default: float
+    lower: float
+    upper: float
+    kind: str
+    component: str
+    log_scale: bool = False
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """One (effect, component) pair of a catalogue.
+
+    ``headline`` maps the spec's headline parameter names to model parameter
+    names; ``free`` lists the parameters a refit frees when the effect is
+    inserted; ``default_size`` is a realistic size for the bench.
+    """
+
+    effect: str
+    component: str
+    headline: dict[str, str]
+    free: tuple[str, ...]
+    default_size: dict[str, float]
+
+    @property
+    def key(self) -> str:
+        return f"{self.effect}:{self.component}"
+
+
+# simulate_batch(pt, ps) -> one dict per row of ps: sensor channels (unfiltered, offsets
+# applied) plus internal signals under "internal.*"
+BatchSimulator = Callable[[Any, np.ndarray], list[dict[str, np.ndarray]]]
+# prepare_inputs(frame, dt_s, spec, window_s) -> (driving input, its rate, other inputs)
+InputPreparer = Callable[[Any, float, Any, float],
+                         tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]
+# pre_identify(campaign, prepared identification tests, p) -> {"values", "upper", "notes", ...}
+PreIdentifier = Callable[[Any, list, np.ndarray], dict]
+
+
+@dataclass
+class ModelDefinition:
+    """Everything identification and discovery need to know about one model family.
+
+    Parameters
+    ----------
+    name
+        The system family (``campaign.yaml: system``).
+    param_specs
+        Every parameter of the flat vector, effects at their neutral value.
+    catalogue
+        The (effect, component) pairs discovery may insert.
+    cascade
+        ``(scenario, parameters it isolates)`` in identification order.
+    offset_channels
+        Sensor-offset parameter → the channel it shifts.
+    output_channels
+        Channels the model predicts, in report order.
+    simulate_batch
+        Simulates one prepared test for many parameter vectors.
+    prepare_inputs
+        Derives the model's inputs from a test's frame.
+    pre_identify
+        Starting values and bounds from signal processing.
+    carries_over
+        Whether a parameter of a stage with no test is handed to the next stage.
+    search_lower
+        Lower bounds that discovery uses instead of the spec's (e.g. to keep a
+        Stribeck velocity above the sample resolution).
+    component_scenarios
+        Where each component acts: the earliest of these scenarios with
+        identification tests is the cascade stage that isolates it.
+    hysteresis
+        ``(x channel or "input", y channel, x label, y label, x scale)`` of the
+        loop plot engineers read (steering angle vs torque for EPS).
+    evidence_methods
+        Which regressions run beside the structure test (``sparse``, ``neural``):
+        their libraries are built from this family's internal states.
+    benchmark
+        ``benchmark(base_result, extended_params) -> dict`` of family-specific
+        figures of merit (EMPS: the published error measures), written as
+        ``benchmark.json`` beside ``discovery.json``.
+    """
+
+    name: str
+    param_specs: tuple[ParamSpec, ...]
+    catalogue: tuple[EffectSpec, ...]
+    cascade: tuple[tuple[str, tuple[str, ...]], ...]
+    offset_channels: dict[str, str]
+    output_channels: tuple[str, ...]
+    simulate_batch: BatchSimulator
+    prepare_inputs: InputPreparer
+    pre_identify: PreIdentifier
+    carries_over: Callable[[str], bool] = lambda name: not name.startswith("offset.")
+    search_lower: dict[str, float] = field(default_factory=dict)
+    component_scenarios: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    hysteresis: tuple[str, str, str, str, float] | None = None
+    evidence_methods: tuple[str, ...] = ("sparse", "neural")
+    benchmark: Callable[..., dict] | None = None
+    param_index: dict[str, int] = field(init=False)
+    effects: dict[str, EffectSpec] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.param_index = {s.name: i for i, s in enumerate(self.param_specs)}
+        self.effects = {e.key: e for e in self.catalogue}
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_specs)
+
+    def spec(self, name: str) -> ParamSpec:
+        return self.param_specs[self.param_index[name]]
+
+    def default_vector(self) -> np.ndarray:
+        return np.array([s.default for s in self.param_specs], dtype=np.float64)
+
+    def vector_from(self, values: dict[str, float] | None = None,
+                    base: np.ndarray | None = None) -> np.ndarray:
+        """A parameter vector from defaults (or ``base``) updated with named ``values``."""
+        p = self.default_vector() if base is None else np.array(base, dtype=np.float64, copy=True)
+        for name, v in (values or {}).items():
+            if name not in self.param_index:
+                raise KeyError(f"unknown {self.name} model parameter '{name}'")
+            p[self.param_index[name]] = float(v)
+        return p
+
+    def as_dict(self, p: np.ndarray, kinds: tuple[str, ...] | None = None) -> dict[str, float]:
+        return {s.name: float(p[i]) for i, s in enumerate(self.param_specs)
+                if kinds is None or s.kind in kinds}
+
+    def stage_free(self) -> dict[str, tuple[str, ...]]:
+        return dict(self.cascade)
