@@ -106,11 +106,14 @@ def run_cascade(
     settings: IdentifySettings,
     base: np.ndarray | None = None,
     extra_free: dict[str, tuple[str, ...]] | None = None,
+    only: set[str] | None = None,
 ) -> tuple[np.ndarray, list[StageResult], dict, list[str], dict[str, PreparedTest]]:
     """Fit the identification tests stage by stage; return the parameter vector and records.
 
     ``extra_free`` adds parameters (e.g. of an inserted effect) to the stage
-    of a scenario: discovery uses it to refit an extended model.
+    of a scenario: discovery uses it to refit an extended model. ``only``
+    restricts the fit to these parameters (and the sensor offsets), the rest
+    staying at ``base``: the planner's proof identifies just a plan's unknowns.
     """
     warnings: list[str] = []
     id_specs = campaign.identification_tests()
@@ -126,13 +129,14 @@ def run_cascade(
     scales = channel_scales(id_tests)
 
     model = campaign.family.model()
-    PARAM_INDEX, PARAM_SPECS = model.param_index, model.param_specs
-    p = model.vector_from({k: v for k, v in campaign.known.items() if k in PARAM_INDEX},
+    p = model.vector_from({k: v for k, v in campaign.known.items() if k in model.param_index},
                     base=base if base is not None else None)
     preid = model.pre_identify(campaign, id_tests, p)
     for k, v in preid["values"].items():
-        spec = PARAM_SPECS[PARAM_INDEX[k]]
-        p[PARAM_INDEX[k]] = float(np.clip(v, spec.lower, spec.upper))
+        if only is not None and k not in only:
+            continue
+        spec = model.spec(k)
+        p[model.param_index[k]] = float(np.clip(v, spec.lower, spec.upper))
     warnings += preid["notes"]
 
     fixed: set[str] = set()
@@ -150,7 +154,8 @@ def run_cascade(
         channels_here = {ch for pt in tests for ch in pt.measured}
         free = []
         for n in dict.fromkeys(wanted):
-            if n in fixed:
+            if n in fixed or (only is not None and n not in only
+                              and not n.startswith("offset.")):
                 continue
             if n.startswith("offset.") and model.offset_channels[n] not in channels_here:
                 continue
@@ -171,8 +176,8 @@ def run_cascade(
         for _ in range(max(settings.multistart, 1) - 1):
             q = p.copy()
             for n in free:
-                i = PARAM_INDEX[n]
-                spec = PARAM_SPECS[i]
+                i = model.param_index[n]
+                spec = model.param_specs[i]
                 if n.startswith("offset."):
                     continue
                 if spec.log_scale and q[i] > 0:
@@ -193,23 +198,25 @@ def run_cascade(
             at_bound=fr.at_bound, identifiable=fr.identifiable,
         ))
         for n in free:
-            spec = PARAM_SPECS[PARAM_INDEX[n]]
+            spec = model.spec(n)
             if fr.at_bound[n]:
                 warnings.append(
-                    f"LOUD: '{n}' ended on a bound ({p[PARAM_INDEX[n]]:.4g} {spec.unit}, "
+                    f"LOUD: '{n}' ended on a bound ({p[model.param_index[n]]:.4g} {spec.unit}, "
                     f"bounds [{spec.lower:.3g}, {prob_upper(prob, n):.3g}]) in stage {scenario}: "
                     "the base model may lack an effect and be compensating with this parameter"
                 )
             elif not fr.identifiable[n]:
                 warnings.append(
                     f"'{n}' is not identifiable from the {scenario} tests given "
-                    f"(std error {fr.std_error[n]:.3g} for value {p[PARAM_INDEX[n]]:.4g})"
+                    f"(std error {fr.std_error[n]:.3g} for value {p[model.param_index[n]]:.4g})"
                 )
         if settings.progress:
             print(f"  stage {scenario:<16} {len(free)} params, {len(tests)} tests, "
                   f"cost {fr.cost:.4g}, {time.perf_counter() - t0:.1f} s", flush=True)
     for n in carried:
-        warnings.append(f"'{n}' could not be identified: no test of a scenario that informs it")
+        if only is None or n in only:
+            warnings.append(f"'{n}' could not be identified: no test of a scenario that "
+                            "informs it")
     return p, stages, preid, warnings, prepared
 
 

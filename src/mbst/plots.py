@@ -39,6 +39,20 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
+def _style(ax, title: str, ylabel: str, xlabel: str = "time [s]") -> None:
+    ax.set_title(title, fontsize=9)
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.set_xlabel(xlabel, fontsize=8)
+    ax.grid(alpha=0.3)
+
+
+def _finish(fig, axes, path: Path) -> None:
+    """Legend in the first cell (the styles repeat in every cell), then save."""
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def _channel_grid(tests: list[PreparedTest], row_height: float):
     """A tests × channels grid; yields (test, channel, axes, unit scale) per filled cell.
 
@@ -69,13 +83,8 @@ def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Pat
         for name, twins in models.items():
             if pt.id in twins and ch in twins[pt.id]:
                 ax.plot(pt.time_s, s * twins[pt.id][ch], label=name, **MODEL_STYLE.get(name, {}))
-        ax.set_title(f"{pt.id} ({pt.spec.role})", fontsize=9)
-        ax.set_ylabel(LABELS[ch], fontsize=8)
-        ax.set_xlabel("time [s]", fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
-    _save(fig, path)
+        _style(ax, f"{pt.id} ({pt.spec.role})", LABELS[ch])
+    _finish(fig, axes, path)
 
 
 def _loop_x(pt: PreparedTest, key: str) -> np.ndarray:
@@ -129,10 +138,5 @@ def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) ->
                         **{**MODEL_STYLE.get(name, {}), "ls": "-"})
         for r in motion_reversals(pt.omega_rad_per_s):
             ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
-        ax.set_title(f"{pt.id}: residual", fontsize=9)
-        ax.set_ylabel(LABELS[ch], fontsize=8)
-        ax.set_xlabel("time [s] (grey: motion reversals)", fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
-    _save(fig, path)
+        _style(ax, f"{pt.id}: residual", LABELS[ch], "time [s] (grey: motion reversals)")
+    _finish(fig, axes, path)

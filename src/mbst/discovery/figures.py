@@ -46,13 +46,8 @@ def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
                     ax.plot(pt.time_s[sl], s * tw[pt.id][ch][sl], label=name,
                             **MODEL_STYLE.get(name, {}))
             ax.axvline(pt.time_s[worst], color="0.6", lw=0.8, ls=":")
-            ax.set_title(f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", fontsize=9)
-            ax.set_ylabel(LABELS[ch], fontsize=8)
-            ax.set_xlabel("time [s]", fontsize=8)
-            ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    fig.tight_layout()
-    plots._save(fig, path)
+            plots._style(ax, f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", LABELS[ch])
+    plots._finish(fig, axes, path)
 
 
 def structure_bars(result, path: Path) -> None:

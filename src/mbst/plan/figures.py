@@ -41,7 +41,8 @@ def sensitivity_heatmap(sens: Sensitivity, cfg: PlanConfig, path: Path) -> None:
     ncol = min(3, len(sids))
     nrow = math.ceil(len(sids) / ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 0.42 * len(sens.sensors) * nrow
-                                                  + 2.2 * nrow), squeeze=False)
+                                                  + 2.2 * nrow), squeeze=False,
+                             layout="constrained")
     vmax = max(1.0, float(np.log10(max(sens.swing.max(), 1e-12))))
     im = None
     for k, sid in enumerate(sids):

@@ -22,8 +22,7 @@ import pandas as pd
 
 from mbst.bench import KNOWN, BenchRecipe
 from mbst.campaign import TestSpec, read_campaign, write_campaign
-from mbst.fitting import FitProblem, channel_scales, prepare_test, solve
-from mbst.identify import IdentifySettings, correlate
+from mbst.identify import IdentifySettings, correlate, run_cascade
 from mbst.plan.config import PlanConfig
 from mbst.plan.inputs import profile
 from mbst.plan.selection import Plan
@@ -31,6 +30,7 @@ from mbst.plan.sensitivity import Sensitivity
 from mbst.plan.sensors import INPUT_SENSOR, logged_channels, sensor_signals
 from mbst.systems import eps
 from mbst.systems.eps_channels import SYSTEM_NAME
+from mbst.systems.eps_model import EPS_MODEL
 from mbst.systems.eps_params import PARAM_INDEX
 
 
@@ -47,11 +47,6 @@ def campaign_tests(sens: Sensitivity, plan: Plan) -> list[tuple[str, int, str]]:
         out.append((f"{cell.scenario_id}_{cell.input_id}_ctrl", c, "control"))
     return out
 
-
-try:  # the EPS family's cascade (moved out of identify.py by the model-definition refactor)
-    from mbst.systems.eps_model import CASCADE, OFFSET_CHANNEL
-except ImportError:  # pragma: no cover - older layout
-    from mbst.identify import CASCADE, OFFSET_CHANNEL
 
 TAU_S = IdentifySettings().tau_s  # the identification's default filter
 
@@ -109,56 +104,24 @@ class _Identified:
 
 
 def _cascade(cfg: PlanConfig, camp, p_true: np.ndarray, seed: int) -> _Identified:
-    """The identification cascade (``mbst.identify.CASCADE`` order) over the plan's unknowns.
+    """``mbst identify``'s cascade restricted to the plan's unknowns.
 
-    The plan assumes every other parameter known, so the proof fixes them at the
+    The plan assumes every other parameter known, so the proof holds them at the
     rig's values (``mbst identify`` would free the whole base model, which no plan
     of a subset of unknowns is meant to identify). Unknowns start at the centre
-    of their ranges, offsets at zero; each stage frees the unknowns its scenario
-    isolates (plus those of skipped stages) and the offsets of new channels.
+    of their ranges (pre-identification may move them, as in ``mbst identify``),
+    offsets at zero.
     """
     t0 = time.perf_counter()
-    unknown = cfg.unknown_names
-    in_cascade = {n for _, iso in CASCADE for n in iso}
-    prepared = {s.id: prepare_test(camp, s, TAU_S) for s in camp.tests}
-    ids = [prepared[s.id] for s in camp.identification_tests()]
-    scales = channel_scales(ids)
     p = p_true.copy()
     for u in cfg.unknowns:
         p[PARAM_INDEX[u.name]] = u.nominal
-    for n in OFFSET_CHANNEL:
+    for n in EPS_MODEL.offset_channels:
         p[PARAM_INDEX[n]] = 0.0
-    rng = np.random.default_rng([seed, 11])
-    fixed: set[str] = set()
-    carried = [n for n in unknown if n not in in_cascade]
-    std: dict[str, float] = {}
-    warnings: list[str] = []
-    for scenario, isolates in CASCADE:
-        tests = [pt for pt in ids if pt.scenario == scenario]
-        wanted = carried + [n for n in isolates if n in unknown and n not in fixed]
-        if not tests:
-            carried = wanted
-            continue
-        chans = {ch for pt in tests for ch in pt.measured}
-        free = list(dict.fromkeys(wanted + [n for n, ch in OFFSET_CHANNEL.items()
-                                            if ch in chans and n not in fixed]))
-        carried = []
-        if not free:
-            continue
-        prob = FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p, scales,
-                          decimate=2)
-        starts = [p.copy()]
-        for _ in range(cfg.proof_multistart - 1):
-            q = p.copy()
-            for n in free:
-                if not n.startswith("offset."):
-                    q[PARAM_INDEX[n]] *= float(np.exp(rng.uniform(-0.5, 0.5)))
-            starts.append(q)
-        fr = solve(prob, starts, max_nfev=40)
-        p = fr.p
-        fixed.update(free)
-        std.update(fr.std_error)
-    warnings += [f"'{n}' not identified: no test of a scenario that informs it" for n in carried]
+    settings = IdentifySettings(tau_s=TAU_S, seed=seed, multistart=cfg.proof_multistart)
+    p, stages, _, warnings, prepared = run_cascade(camp, settings, base=p,
+                                                   only=set(cfg.unknown_names))
+    std = {n: v for st in stages for n, v in st.std_error.items()}
     return _Identified(p, std, prepared, warnings, time.perf_counter() - t0)
 
 

@@ -116,9 +116,7 @@ def _effect_vector(base: np.ndarray, spec: EffectSpec) -> np.ndarray:
 
 def _run(cell: Cell, ang: np.ndarray, om: np.ndarray, dt: float, ps: np.ndarray,
          n_sub: int) -> np.ndarray:
-    scen, mode = K.SCENARIO_CODES[cell.scenario], K.MOTOR_CODES[cell.motor]
-    x0s = np.stack([eps.initial_state(p, cell.scenario, float(ang[0])) for p in ps])
-    return K.simulate_batch(ang, om, np.ascontiguousarray(ps), scen, mode, n_sub, x0s, dt)
+    return eps.simulate_raw_batch(cell.scenario, cell.motor, ang, om, ps, dt, n_sub)
 
 
 def _run_one(cell: Cell, ang: np.ndarray, om: np.ndarray, dt: float, p: np.ndarray,

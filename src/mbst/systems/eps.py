@@ -178,6 +178,28 @@ def simulate_raw(
     return K.simulate_dt(th, om, p, scen, mode, ns, x0, dt)
 
 
+def simulate_raw_batch(
+    scenario: str,
+    motor: str,
+    angle_rad: np.ndarray,
+    angular_velocity_rad_per_s: np.ndarray,
+    ps: np.ndarray,
+    dt_s: float,
+    n_sub: int | None = None,
+) -> np.ndarray:
+    """Raw outputs (B, N, N_OUTPUTS) of many parameter vectors on one input (numba prange).
+
+    The step is the finest any of the vectors needs unless ``n_sub`` is given.
+    """
+    ps = np.ascontiguousarray(np.atleast_2d(ps), dtype=np.float64)
+    scen, mode = _codes(scenario, motor)
+    ns = max(substeps(p, scenario, dt_s) for p in ps) if n_sub is None else int(n_sub)
+    x0s = np.stack([initial_state(p, scenario, float(angle_rad[0])) for p in ps])
+    return K.simulate_batch(np.ascontiguousarray(angle_rad, dtype=np.float64),
+                            np.ascontiguousarray(angular_velocity_rad_per_s, dtype=np.float64),
+                            ps, scen, mode, ns, x0s, dt_s)
+
+
 def sensors_from_raw(raw: np.ndarray, p: np.ndarray, scenario: str) -> dict[str, np.ndarray]:
     """Sensor channels (with campaign-wide offsets) from raw model outputs."""
     g = lambda name: p[PARAM_INDEX[name]]

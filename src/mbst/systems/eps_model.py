@@ -203,10 +203,8 @@ def prepare_inputs(frame, dt_s: float, spec, window_s: float = INPUT_WINDOW_S
 def simulate_batch(pt, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Simulate many parameter vectors on one test in parallel (numba prange)."""
     ps = np.ascontiguousarray(np.atleast_2d(ps), dtype=np.float64)
-    n_sub = max(eps.substeps(p, pt.scenario, pt.dt_s) for p in ps)
-    scen, mode = K.SCENARIO_CODES[pt.scenario], K.MOTOR_CODES[pt.spec.motor]
-    x0s = np.stack([eps.initial_state(p, pt.scenario, float(pt.input_signal[0])) for p in ps])
-    raw = K.simulate_batch(pt.input_signal, pt.input_rate, ps, scen, mode, n_sub, x0s, pt.dt_s)
+    raw = eps.simulate_raw_batch(pt.scenario, pt.spec.motor, pt.input_signal, pt.input_rate, ps,
+                                 pt.dt_s)
     out = []
     for k in range(len(ps)):
         sens = eps.sensors_from_raw(raw[k], ps[k], pt.scenario)

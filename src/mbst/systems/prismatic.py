@@ -203,19 +203,23 @@ def prepare_inputs(frame, dt_s: float, spec, window_s: float = 0.0
     col = lambda c: (frame[c].to_numpy(float) if c in frame.columns else np.zeros(n))
     force = col("motor_force_n")
     inputs = {"motor_force_n": force, "injected_force_n": col("injected_force_n"),
-              "position_m": col("position_m")}
+              "position_m": col("position_m"),
+              "position_reference_m": col("position_reference_m")}
     driving = col("position_reference_m") if spec.scenario == "closed_loop" else force
     return driving, np.gradient(driving, dt_s), inputs
 
 
 def simulate(pt: PreparedTest, ps: np.ndarray, scenario: str | None = None
              ) -> list[dict[str, np.ndarray]]:
-    """Simulate a prepared test for each row of ``ps`` (closed or open loop)."""
+    """Simulate a prepared test for each row of ``ps``.
+
+    ``scenario`` overrides the test's own: a closed-loop run can be replayed open
+    loop from its measured force (the benchmark's open-loop FIT).
+    """
     ps = np.ascontiguousarray(np.atleast_2d(ps), dtype=np.float64)
     scenario = scenario or pt.scenario
     q0, v0 = initial_state(pt.inputs["position_m"], pt.dt_s)
-    raw = simulate_kernel(np.ascontiguousarray(pt.input_signal if pt.scenario == "closed_loop"
-                                               else np.zeros(len(pt.time_s))),
+    raw = simulate_kernel(np.ascontiguousarray(pt.inputs["position_reference_m"]),
                           np.ascontiguousarray(pt.inputs["motor_force_n"]),
                           np.ascontiguousarray(pt.inputs["injected_force_n"]),
                           ps, scenario == "closed_loop", q0, v0, pt.dt_s)
