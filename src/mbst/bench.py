@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -18,8 +19,11 @@ import pandas as pd
 from mbst.campaign import TestSpec, write_campaign
 from mbst.outputs import write_json
 from mbst.systems import eps, get_system
+from mbst.systems.eps_assist import conditions, mode_param, route, speed_param
 from mbst.systems.eps_channels import SYSTEM_NAME, TIE_RODS_CONNECTED
-from mbst.systems.eps_params import EFFECTS, as_dict, effect, vector_from
+from mbst.systems.eps_model import EPS_MODEL
+from mbst.systems.eps_params import EFFECTS, N_PARAMS, effect
+from mbst.systems.model import ModelDefinition
 
 # Sensor noise, rms (eps-model.md "Measured-data realities")
 NOISE_RMS = {
@@ -77,15 +81,27 @@ OPTIONAL_SENSORS = ("motor_angle_rad", "motor_current_a")
 DEMO_EFFECTS = ("backlash:worm_gear",)
 
 
+# Seed 001 Table 2 (EPS): the two assistance programs and the active damping per speed.
+DEMO_ASSIST_CURVES = {
+    "normal": {"c1": 0.21, "c2": 0.34, "c3": 1.84},
+    "city": {"c1": 0.29, "c2": 1.22, "c3": 1.68},
+}
+DEMO_ASSIST_DAMPING = {60.0: 0.015, 100.0: 0.05, 120.0: 0.09}
+DEMO_HPS_CURVE = {"c1": 0.5}
+
+
 @dataclass(frozen=True)
 class PlannedTest:
-    """One bench test: scenario, input profile and role."""
+    """One bench test: scenario, input profile and role (and, powered, mode and speed)."""
 
     id: str
     scenario: str
     input: dict
     role: str = "identification"
     motor: str = "passive"
+    vehicle_speed_kph: float | None = None
+    assist_mode: str | None = None
+    sample_rate_hz: float | None = None
 
 
 def demo_plan() -> list[PlannedTest]:
@@ -128,6 +144,63 @@ def compact_plan() -> list[PlannedTest]:
     ]
 
 
+def assist_plan(quasi_static_hz: float = 0.01, speeds: tuple[float, ...] = (60.0, 100.0, 120.0),
+                modes: tuple[str, ...] = ("normal", "city"), free_wheels_on: bool = True
+                ) -> list[PlannedTest]:
+    """Seed 001's layout: engine off / on, free / loaded wheels, 0.01, 0.5 and 1 Hz.
+
+    Free wheels are ``suspended``, loaded wheels ``tires_on_ground``. With the
+    engine off the rig gives friction and stiffness; with it on, the 0.01 Hz
+    (quasi-static) tests give one assist curve per mode and the 1 Hz tests the
+    active damping at each vehicle speed. Held out: an engine-off 0.8 Hz test and
+    engine-on 0.5 Hz tests in both modes.
+
+    Seed 001 reuses the passive rig's parameters: the campaign starts with
+    seed 000's cut-outs (blocked column, free tie-rods) with the motor passive,
+    so stiffness and friction come from where they are isolated.
+    """
+    tag = f"{quasi_static_hz:g}".replace(".", "p")
+    slow = {"kind": "sine", "amplitude_deg": 120, "frequency_hz": quasi_static_hz,
+            "cycles": 1.25, "taper_cycles": 0.25}
+    fast = lambda f, c: {"kind": "sine", "amplitude_deg": 90, "frequency_hz": f, "cycles": c}  # noqa: E731
+    # the slow tests are long: 200 Hz is what a quasi-static channel needs
+    slow_hz = 200.0
+    v0 = speeds[0]
+    out = [pt for pt in compact_plan() if pt.role == "identification"] + [
+        PlannedTest(f"off_free_{tag}hz", "suspended", slow, sample_rate_hz=slow_hz),
+        PlannedTest(f"off_loaded_{tag}hz", "tires_on_ground", slow, sample_rate_hz=slow_hz),
+        PlannedTest("off_loaded_0p5hz", "tires_on_ground", fast(0.5, 3)),
+        PlannedTest("off_loaded_1hz", "tires_on_ground", fast(1.0, 4)),
+        PlannedTest("off_loaded_0p8hz_ctrl", "tires_on_ground", fast(0.8, 4), role="control"),
+    ]
+    for m in modes:
+        if free_wheels_on:  # seed 001: friction bounds from engine off and on, free wheels
+            out.append(PlannedTest(f"on_free_{tag}hz_{m}", "suspended", slow, motor="assist",
+                                   vehicle_speed_kph=v0, assist_mode=m, sample_rate_hz=slow_hz))
+        out.append(PlannedTest(f"on_loaded_{tag}hz_{m}", "tires_on_ground", slow, motor="assist",
+                               vehicle_speed_kph=v0, assist_mode=m, sample_rate_hz=slow_hz))
+    for v in speeds:
+        out.append(PlannedTest(f"on_loaded_1hz_{modes[0]}_{v:g}kph", "tires_on_ground",
+                               fast(1.0, 4), motor="assist", vehicle_speed_kph=v,
+                               assist_mode=modes[0]))
+    for i, m in enumerate(modes):
+        v = speeds[(i + 1) % len(speeds)]
+        out.append(PlannedTest(f"on_loaded_0p5hz_{m}_{v:g}kph_ctrl", "tires_on_ground",
+                               fast(0.5, 3), role="control", motor="assist",
+                               vehicle_speed_kph=v, assist_mode=m))
+    return out
+
+
+def compact_assist_plan() -> list[PlannedTest]:
+    """Seed 001's layout shortened for quick checks: 0.05 Hz as the quasi-static
+    frequency, two speeds."""
+    return assist_plan(quasi_static_hz=0.05, speeds=(60.0, 120.0))
+
+
+PLANS = {"demo": demo_plan, "compact": compact_plan, "assist": assist_plan,
+         "compact-assist": compact_assist_plan}
+
+
 def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Time and steering angle (rad) of an input profile, starting and ending at rest."""
     kind = spec["kind"]
@@ -138,8 +211,8 @@ def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
         dur = float(spec.get("cycles", 3)) / f
         t = np.arange(0.0, lead + dur + lead, 1.0 / sample_rate_hz)
         tm = np.clip(t - lead, 0.0, dur)
-        # a one-cycle cosine taper keeps the angle and its rate continuous at the ends
-        taper = np.minimum(1.0, np.minimum(tm, dur - tm) * f)
+        # a cosine taper (one cycle unless told) keeps the angle and its rate continuous
+        taper = np.minimum(1.0, np.minimum(tm, dur - tm) * f / float(spec.get("taper_cycles", 1)))
         taper = 0.5 - 0.5 * np.cos(np.pi * taper)
         ang = a * taper * np.sin(2 * np.pi * f * tm)
     elif kind in ("ramp", "triangle"):
@@ -213,35 +286,80 @@ class BenchRecipe:
     name: str = "demo-eps"
     rig: dict[str, float] = field(default_factory=lambda: dict(DEMO_RIG))
     offsets: dict[str, float] = field(default_factory=lambda: dict(DEMO_OFFSETS))
+    # powered tests: the characteristic family, its curve per assist mode, damping per speed
+    assist_characteristic: str = "eps"
+    assist_curves: dict[str, dict[str, float]] | None = None
+    assist_damping: dict[float, float] = field(default_factory=lambda: dict(DEMO_ASSIST_DAMPING))
 
     def effect_values(self) -> list[tuple[str, dict[str, float]]]:
         return [parse_effect(e) for e in self.effects]
 
+    def specs(self) -> list[TestSpec]:
+        return [TestSpec(id=pt.id, file=f"tests/{pt.id}.csv", scenario=pt.scenario,
+                         input=dict(pt.input), motor=pt.motor, role=pt.role,
+                         vehicle_speed_kph=pt.vehicle_speed_kph, assist_mode=pt.assist_mode)
+                for pt in (self.plan or demo_plan())]
+
+    def campaign_extra(self) -> dict:
+        powered = any(s.motor == "assist" for s in self.specs())
+        return {"assist_characteristic": self.assist_characteristic} if powered else {}
+
+    def model(self) -> ModelDefinition:
+        """The model the campaign will be read with (one curve per mode, damping per speed)."""
+        stand_in = SimpleNamespace(name=self.name, tests=self.specs(), extra=self.campaign_extra())
+        return EPS_MODEL.for_campaign(stand_in)
+
+    def curves(self) -> dict[str, dict[str, float]]:
+        if self.assist_curves is not None:
+            return self.assist_curves
+        if self.assist_characteristic == "hps":
+            return {m: dict(DEMO_HPS_CURVE) for m in DEMO_ASSIST_CURVES}
+        return DEMO_ASSIST_CURVES
+
     def true_params(self) -> np.ndarray:
+        """The rig's parameters in ``model()``'s layout."""
+        model = self.model()
         values = {**self.rig, **self.offsets}
         for _, v in self.effect_values():
             values.update(v)
-        return vector_from(values)
+        idx = model.param_index
+        for mode, c in self.curves().items():
+            for q, v in c.items():
+                if mode_param(mode, q) in idx:
+                    values[mode_param(mode, q)] = v
+        for speed, v in self.assist_damping.items():
+            if speed_param(speed) in idx:
+                values[speed_param(speed)] = v
+        modes, speeds = conditions(self.specs())
+        missing = [m for m in modes if mode_param(m, "c1") not in values] + [
+            f"{v:g} km/h" for v in speeds if speed_param(v) not in values]
+        if missing:
+            raise ValueError(f"the bench has no assist truth for: {', '.join(missing)}")
+        return model.vector_from(values)
 
 
 def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
     """Noisy measured tests of the recipe's plan, deterministic in the seed."""
+    model = recipe.model()
     p = recipe.true_params()
     for s in recipe.sensors:
         if s not in NOISE_RMS:
             raise ValueError(f"unknown sensor '{s}' (known: {', '.join(NOISE_RMS)})")
     tests = []
-    for i, pt in enumerate(recipe.plan or demo_plan()):
+    plan = recipe.plan or demo_plan()
+    for i, (pt, spec) in enumerate(zip(plan, recipe.specs())):
         rng = np.random.default_rng([recipe.seed, i])  # per test: order-independent
-        t, ang = input_profile(pt.input, recipe.sample_rate_hz)
-        sim = eps.simulate(pt.scenario, pt.motor, t, ang, p)
+        t, ang = input_profile(pt.input, pt.sample_rate_hz or recipe.sample_rate_hz)
+        # the test's own assist curve and damping, in the kernel's layout
+        p_test = route(model, spec, p[None])[0][:N_PARAMS]
+        sim = eps.simulate(pt.scenario, pt.motor, t, ang, p_test)
         sim["steering_angle_rad"] = ang
         cols = {"time_s": t}
         for ch in _channels_for(pt.scenario, recipe.sensors):
+            if ch == "motor_current_a" and pt.motor != "assist":
+                continue  # engine off: the current channel is flat, nothing is logged
             noise = NOISE_RMS[ch] * recipe.noise_scale
             cols[ch] = sim[ch] + noise * rng.standard_normal(len(t))
-        spec = TestSpec(id=pt.id, file=f"tests/{pt.id}.csv", scenario=pt.scenario,
-                        input=dict(pt.input), motor=pt.motor, role=pt.role)
         tests.append((spec, pd.DataFrame(cols)))
     return tests
 
@@ -267,6 +385,7 @@ def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
 def truth_record(recipe: BenchRecipe) -> dict:
     """Ground truth: every parameter, the hidden effects with headline sizes, offsets."""
     p = recipe.true_params()
+    model = recipe.model()
     effects = []
     for key, values in recipe.effect_values():
         spec = EFFECTS[key]
@@ -282,7 +401,7 @@ def truth_record(recipe: BenchRecipe) -> dict:
         "noise_scale": recipe.noise_scale,
         "noise_rms": {k: v * recipe.noise_scale for k, v in NOISE_RMS.items()},
         "effects": effects,
-        "params": as_dict(p),
+        "params": model.as_dict(p),
     }
 
 
@@ -293,7 +412,8 @@ def run_bench(out_dir: str | Path, recipe: BenchRecipe, overwrite: bool = True) 
     tests = simulate_plan(recipe)
     camp = write_campaign(
         out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=dict(KNOWN), tests=tests,
-        extra={"generated_by": "mbst bench", "seed": recipe.seed}, overwrite=overwrite,
+        extra={"generated_by": "mbst bench", "seed": recipe.seed, **recipe.campaign_extra()},
+        overwrite=overwrite,
     )
     write_json(out / "truth.json", truth_record(recipe))
     return camp

@@ -21,13 +21,16 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 import yaml
 
 from mbst.systems import SystemFamily, get_system, known_systems
+
+if TYPE_CHECKING:
+    from mbst.systems.model import ModelDefinition
 
 FORMAT = "mbst-campaign/1"
 CAMPAIGN_FILE = "campaign.yaml"
@@ -185,6 +188,17 @@ class Campaign:
     tests: list[TestSpec]
     extra: dict = field(default_factory=dict)
     data: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False, compare=False)
+    _model: Any = field(default=None, init=False, repr=False, compare=False)
+
+    def model(self) -> ModelDefinition:
+        """The family's model definition with this campaign's own parameters (cached).
+
+        Every prepared test of a campaign shares this one object, so a fit
+        and its parameter vectors agree on the layout.
+        """
+        if self._model is None:
+            self._model = self.family.model().for_campaign(self)
+        return self._model
 
     @property
     def family(self) -> SystemFamily:

@@ -27,7 +27,14 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from mbst.bench import DEFAULT_SENSORS, DEMO_EFFECTS, BenchRecipe, parse_effect, run_bench
+    from mbst.bench import (
+        DEFAULT_SENSORS,
+        DEMO_EFFECTS,
+        PLANS,
+        BenchRecipe,
+        parse_effect,
+        run_bench,
+    )
 
     effects = list(DEMO_EFFECTS) if args.effect is None else [e for e in args.effect if e != "none"]
     for e in effects:
@@ -39,7 +46,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.sensors:
         sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip())
     recipe = BenchRecipe(effects=effects, seed=args.seed, noise_scale=args.noise_scale,
-                         sensors=sensors, sample_rate_hz=args.sample_rate_hz, name=args.name)
+                         sensors=sensors, sample_rate_hz=args.sample_rate_hz, name=args.name,
+                         plan=PLANS[args.plan](), assist_characteristic=args.assist_characteristic)
     try:
         camp = run_bench(args.out, recipe)
     except ValueError as exc:
@@ -162,6 +170,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "torque, rack position, tie-rod forces; add motor_angle_rad on request)")
     p.add_argument("--sample-rate-hz", type=float, default=500.0)
     p.add_argument("--name", default="demo-eps", help="campaign name")
+    p.add_argument("--plan", default="demo", choices=["demo", "compact", "assist", "compact-assist"],
+                   help="test plan: seed 000's demo (default), a short passive one, seed 001's "
+                   "powered layout (engine off/on, free/loaded wheels, 0.01/0.5/1 Hz, modes "
+                   "normal and city, 60/100/120 km/h) or its short version")
+    p.add_argument("--assist-characteristic", default="eps", choices=["eps", "hps"],
+                   help="power-steer curve of the powered tests: EPS c1·T + c2·sign(T)·|T|^c3 "
+                   "or HPS c1·sign(T)·(e^|T| − 1)")
     p.set_defaults(func=_cmd_bench)
 
     p = add("identify", "fit the physics model by cascaded identification; correlate on controls")

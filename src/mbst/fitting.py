@@ -64,7 +64,7 @@ def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
     causal exponential filter as the measured ones, so both sides carry the
     same phase lag (eps-model.md, "Preprocessing").
     """
-    model = campaign.family.model()
+    model = campaign.model()
     df = campaign.frame(spec.id)
     t = df["time_s"].to_numpy(float)
     dt = float((t[-1] - t[0]) / (len(t) - 1))

@@ -128,7 +128,7 @@ def run_cascade(
     id_tests = [prepared[s.id] for s in id_specs]
     scales = channel_scales(id_tests)
 
-    model = campaign.family.model()
+    model = campaign.model()
     p = model.vector_from({k: v for k, v in campaign.known.items() if k in model.param_index},
                     base=base if base is not None else None)
     preid = model.pre_identify(campaign, id_tests, p)
@@ -144,8 +144,14 @@ def run_cascade(
     carried: list[str] = []
     rng = np.random.default_rng(settings.seed)
     for scenario, isolates in model.cascade:
-        tests = [pt for pt in id_tests if pt.scenario == scenario]
+        tests = model.stage_tests(scenario, id_tests)
+        passed_on = []
+        if tests and scenario in model.carry_through:
+            passed_on, carried = list(carried), []
         wanted = list(carried) + [n for n in isolates if n not in fixed]
+        refit = list(model.refines.get(scenario, ())) if tests else []
+        fixed.difference_update(refit)
+        wanted += refit
         wanted += list((extra_free or {}).get(scenario, ()))
         if not tests:
             # a later scenario may inform these too (the model says which)
@@ -153,18 +159,22 @@ def run_cascade(
             continue
         channels_here = {ch for pt in tests for ch in pt.measured}
         free = []
+        uninformed = []
         for n in dict.fromkeys(wanted):
             if n in fixed or (only is not None and n not in only
                               and not n.startswith("offset.")):
                 continue
             if n.startswith("offset.") and model.offset_channels[n] not in channels_here:
                 continue
+            if not model.informed_by(n, tests):
+                uninformed.append(n)
+                continue
             free.append(n)
         # an offset seen for the first time here, estimated by a later stage's channels
         for n, ch in model.offset_channels.items():
             if ch in channels_here and n not in fixed and n not in free:
                 free.append(n)
-        carried = []
+        carried = uninformed + passed_on
         if not free:
             for pt in tests:
                 warnings.append(f"test '{pt.id}' ({scenario}) informs no free parameter")
@@ -252,7 +262,7 @@ def identify(campaign: Campaign, settings: IdentifySettings | None = None) -> Id
     id_fit, id_twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
     twins.update(id_twins)
     return IdentifyResult(campaign.name, p, stages, preid, warnings, corr, id_fit,
-                          time.perf_counter() - t0, prepared, twins, campaign.family.model())
+                          time.perf_counter() - t0, prepared, twins, campaign.model())
 
 
 def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
@@ -316,7 +326,8 @@ def write_identify_outputs(result: IdentifyResult, out: Path, settings: Identify
     plots.hysteresis_loops(list(result.prepared.values()), {"base": result.twins},
                            figdir / "hysteresis.png")
     plots.residuals(shown, {"base": result.twins}, figdir / "residuals.png")
-    (out / "identify.md").write_text(markdown_summary(result))
+    extra = result.model.report(result, figdir) if result.model.report else []
+    (out / "identify.md").write_text(markdown_summary(result) + "".join(f"{x}\n" for x in extra))
 
 
 def markdown_summary(result: IdentifyResult) -> str:

@@ -116,7 +116,7 @@ def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: P
         for name, twins in models.items():
             if pt.id in twins:
                 ax.plot(x, twins[pt.id][ych], label=name, **MODEL_STYLE.get(name, {}))
-        ax.set_title(f"{pt.id}\n{pt.scenario}, {pt.spec.role}", fontsize=8)
+        ax.set_title(f"{pt.id}\n{pt.scenario}, {pt.spec.role}{_assist_label(pt)}", fontsize=8)
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel(ylabel, fontsize=8)
         ax.grid(alpha=0.3)
@@ -126,6 +126,13 @@ def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: P
         axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
+
+
+def _assist_label(pt: PreparedTest) -> str:
+    if pt.spec.motor != "assist":
+        return ""
+    speed = "" if pt.spec.vehicle_speed_kph is None else f" {pt.spec.vehicle_speed_kph:g} km/h"
+    return f", assist {pt.spec.assist_mode or ''}{speed}"
 
 
 def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) -> None:

@@ -17,10 +17,13 @@ rule bench:
         sensors=bench_sensor_arg,
         seed=lambda wildcards: bench_recipe(wildcards)["seed"],
         noise_scale=lambda wildcards: bench_recipe(wildcards)["noise_scale"],
+        plan=lambda wildcards: bench_recipe(wildcards)["plan"],
+        assist=lambda wildcards: bench_recipe(wildcards)["assist_characteristic"],
         code=CODE_VERSION,
     conda:
         "../envs/mbst.yaml"
     shell:
         "mbst bench --out {params.outdir:q} --name {wildcards.campaign:q}"
         " {params.effects} --seed {params.seed} --noise-scale {params.noise_scale}"
-        " --sensors {params.sensors} > {log:q} 2>&1"
+        " --sensors {params.sensors} --plan {params.plan} --assist-characteristic {params.assist}"
+        " > {log:q} 2>&1"

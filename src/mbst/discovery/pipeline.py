@@ -291,7 +291,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
                 f"{100 * settings.min_relative_gain:.0f} % and ΔAIC ≤ −{settings.min_aic_drop:.0f}"
                 ": the residual is at the noise floor of the catalogue")
             break
-        scorer = StageScorer([pt for pt in ids if pt.scenario == best.stage], best.stage, p,
+        scorer = StageScorer(model.stage_tests(best.stage, ids), best.stage, p,
                              scales, base.preid["upper"], ids_settings.decimate)
         cv = cross_validate(scorer, best, p, settings.cv_nfev)
         if cv["folds"] and cv["wins"] * 2 < cv["folds"]:
@@ -378,7 +378,7 @@ def _identify_base(campaign: Campaign, settings: IdentifySettings) -> IdentifyRe
     p, stages, preid, warnings, prepared = run_cascade(campaign, settings)
     id_fit, twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
     return IdentifyResult(campaign.name, p, stages, preid, warnings, id_fit.iloc[0:0], id_fit,
-                          time.perf_counter() - t0, prepared, twins, campaign.family.model())
+                          time.perf_counter() - t0, prepared, twins, campaign.model())
 
 
 def _progress_bar(enabled: bool):

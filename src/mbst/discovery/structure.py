@@ -309,7 +309,7 @@ def structure_test(
     a stage with more effective samples inflates it.)
     """
     model = id_tests[0].model
-    scenarios = {pt.scenario for pt in id_tests}
+    scenarios = {st for pt in id_tests for st in model.stages_of(pt)}
     scorers: dict[str, StageScorer] = {}
     n_eff: dict[str, float] = {}
     specs: dict[str, EffectSpec] = {}
@@ -321,7 +321,7 @@ def structure_test(
         if stage is None:
             continue
         if stage not in scorers:
-            scorers[stage] = StageScorer([pt for pt in id_tests if pt.scenario == stage], stage,
+            scorers[stage] = StageScorer(model.stage_tests(stage, id_tests), stage,
                                          base, scales, upper, decimate, refine_nfev,
                                          reset=reset)
             n_eff[stage] = scorers[stage].residual_n_eff(scorers[stage].base_refit()[0])

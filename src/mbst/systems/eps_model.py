@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.signal import savgol_filter
 
-from mbst.systems import eps
+from mbst.systems import eps, eps_assist, eps_assist_report
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_channels import OUTPUT_CHANNELS, SYSTEM_NAME
 from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, PARAM_SPECS
@@ -148,7 +148,11 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
             "torsion_bar_stiffness_nm_per_rad": kt, "column_coulomb_nm": col_fc,
             "column_viscous_nms_per_rad": col_b, "torque_offset_nm": off,
         }
-    ft = [pt for pt in tests if pt.scenario == "free_tie_rods"]
+    # powered tests have their own friction picture (seed 001 Fig. 11): kept apart
+    passive = [pt for pt in tests if pt.spec.motor != "assist"]
+    # without the free tie-rods cut-out, free wheels (suspended) are the least loaded
+    ft = ([pt for pt in passive if pt.scenario == "free_tie_rods"]
+          or [pt for pt in passive if pt.scenario == "suspended"])
     if ft:
         # the slowest test shows friction with the least inertia and viscous torque
         slow = min(ft, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
@@ -178,7 +182,7 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
                     f"rack/angle slope {slope:.3e} m/rad differs by "
                     f"{100 * (slope / r - 1):+.0f} % from the known pinion radius {r:.3e} m"
                 )
-    tg = [pt for pt in tests if pt.scenario == "tires_on_ground"]
+    tg = [pt for pt in passive if pt.scenario == "tires_on_ground"]
     if tg and ft:
         slow3 = min(tg, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
         ab3 = _loop_half_width(slow3)
@@ -187,7 +191,118 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
             out["values"]["tires.coulomb_n"] = (ab3 - ab2) / r
             out["hysteresis_tires_on_ground"] = {"test": slow3.id, "half_width_nm": ab3,
                                                  "tires_coulomb_start_n": (ab3 - ab2) / r}
+    if any(pt.spec.motor == "assist" for pt in tests):
+        _pre_identify_assist(tests, p, out, col_fc or 0.0,
+                             out["values"].get("offset.steering_torque_nm", 0.0))
     return out
+
+
+def _branch_interp(x_from: np.ndarray, y_from: np.ndarray, x_to: np.ndarray) -> np.ndarray:
+    order = np.argsort(x_from)
+    xs, ys = x_from[order], y_from[order]
+    y = np.interp(x_to, xs, ys)
+    y[(x_to < xs[0]) | (x_to > xs[-1])] = np.nan
+    return y
+
+
+def assist_points(on: PreparedTest, off: PreparedTest | None, p: np.ndarray,
+                  torque_offset_nm: float = 0.0, current_offset_a: float = 0.0
+                  ) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Measured points (torsion-bar torque, assist torque) of a quasi-static powered test.
+
+    With a motor current sensor the assist is ``N·k_m·i``. Without, seed 001's
+    engine-off/engine-on comparison: at the same rack position on the same
+    branch the load is the same, so the assist is the torque the driver no
+    longer gives, ``T_off(x) − T_on(x)``. Column friction is taken off the
+    measured torque to get the torsion-bar torque.
+    """
+    g = lambda name: p[PARAM_INDEX[name]]
+    fc, veps = g("steering_column.coulomb_nm"), g(
+        "steering_column.regularisation_velocity_rad_per_s")
+    w = on.omega_rad_per_s
+    t_on = on.measured["steering_torque_nm"] - torque_offset_nm
+    t_tb = t_on - fc * np.tanh(w / veps)
+    moving = np.abs(w) > 0.05 * np.max(np.abs(w))
+    if "motor_current_a" in on.measured:
+        a = g("worm_gear_ratio") * g("motor_torque_constant_nm_per_a") * (
+            on.measured["motor_current_a"] - current_offset_a)
+        return t_tb[moving], a[moving], "motor current"
+    if off is None:
+        return None
+    coord = "rack_position_m" if ("rack_position_m" in on.measured
+                                  and "rack_position_m" in off.measured) else None
+    x_on = on.measured[coord] if coord else on.angle_in_rad
+    x_off = off.measured[coord] if coord else off.angle_in_rad
+    t_off = off.measured["steering_torque_nm"] - torque_offset_nm
+    a = np.full_like(t_on, np.nan)
+    for sgn in (1.0, -1.0):
+        b_on = moving & (np.sign(w) == sgn)
+        b_off = (np.abs(off.omega_rad_per_s) > 0.05 * np.max(np.abs(off.omega_rad_per_s))) & (
+            np.sign(off.omega_rad_per_s) == sgn)
+        if b_on.sum() < 10 or b_off.sum() < 10:
+            continue
+        a[b_on] = _branch_interp(x_off[b_off], t_off[b_off], x_on[b_on]) - t_on[b_on]
+    ok = np.isfinite(a) & moving
+    if ok.sum() < 20:
+        return None
+    return t_tb[ok], a[ok], f"engine off ({off.id}) minus engine on"
+
+
+def fit_characteristic(t_tb: np.ndarray, a: np.ndarray, family: str) -> dict[str, float]:
+    """Least-squares curve through measured (torque, assist) points."""
+    from scipy.optimize import least_squares
+
+    if family == "hps":
+        basis = np.sign(t_tb) * np.expm1(np.abs(t_tb))
+        return {"c1": float(max(np.dot(basis, a) / max(np.dot(basis, basis), 1e-12), 0.0))}
+
+    def res(c):
+        return eps_assist.characteristic(t_tb, dict(zip(eps_assist.CURVE, c)), "eps") - a
+
+    fr = least_squares(res, [1.0, 0.5, 2.0], bounds=([0.0, 0.0, 1.0], [20.0, 20.0, 4.0]))
+    return dict(zip(eps_assist.CURVE, (float(v) for v in fr.x)))
+
+
+def _pre_identify_assist(tests: list[PreparedTest], p: np.ndarray, out: dict, col_fc: float,
+                         torque_offset_nm: float) -> None:
+    """Seed 001 Table 1 with the engine on: friction bounds and the curve's start."""
+    family = "hps" if p[PARAM_INDEX["assist.family"]] == 1.0 else "eps"
+    passive = [pt for pt in tests if pt.spec.motor != "assist"]
+    powered = [pt for pt in tests if pt.spec.motor == "assist"]
+    # hysteresis half-width with the engine off (upper) and on (lower bound of the friction)
+    bounds = {}
+    for scen in sorted({pt.scenario for pt in powered}):
+        offs = [pt for pt in passive if pt.scenario == scen]
+        ons = [pt for pt in powered if pt.scenario == scen]
+        slow_on = min(ons, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+        rec = {"engine_on_test": slow_on.id, "half_width_on_nm": _loop_half_width(slow_on)}
+        if offs:
+            slow_off = min(offs, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+            rec.update(engine_off_test=slow_off.id, half_width_off_nm=_loop_half_width(slow_off))
+        bounds[scen] = rec
+    out["assist_friction_bounds"] = bounds
+    curves = {}
+    for mode in sorted({pt.spec.assist_mode or "default" for pt in powered}):
+        ons = [pt for pt in powered if (pt.spec.assist_mode or "default") == mode
+               and eps_assist.quasi_static(pt)]
+        pts_t, pts_a, sources = [], [], []
+        for on in ons:
+            # engine-off/on differences carry the tires' stick history: too rough for a start
+            got = assist_points(on, None, p, torque_offset_nm)
+            if got is not None:
+                pts_t.append(got[0])
+                pts_a.append(got[1])
+                sources.append(f"{on.id}: {got[2]}")
+        if not pts_t:
+            continue
+        t_tb, a = np.concatenate(pts_t), np.concatenate(pts_a)
+        c = fit_characteristic(t_tb, a, family)
+        for q, v in c.items():
+            name = (f"assist.{q}" if mode == "default" else eps_assist.mode_param(mode, q))
+            out["values"][name] = v
+        curves[mode] = {"points": int(len(a)), "sources": sources, **c}
+    if curves:
+        out["assist_curve_start"] = curves
 
 
 # -------------------------------------------------------------------------------------
@@ -202,7 +317,8 @@ def prepare_inputs(frame, dt_s: float, spec, window_s: float = INPUT_WINDOW_S
 
 def simulate_batch(pt, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Simulate many parameter vectors on one test in parallel (numba prange)."""
-    ps = np.ascontiguousarray(np.atleast_2d(ps), dtype=np.float64)
+    ps = eps_assist.route(pt.model, pt.spec, np.atleast_2d(ps))
+    ps = np.ascontiguousarray(ps, dtype=np.float64)
     raw = eps.simulate_raw_batch(pt.scenario, pt.spec.motor, pt.input_signal, pt.input_rate, ps,
                                  pt.dt_s)
     out = []
@@ -224,6 +340,9 @@ COMPONENT_SCENARIOS: dict[str, tuple[str, ...]] = {
     "tie_rods": ("blocked_rack", "suspended", "tires_on_ground"),
     "tires": ("tires_on_ground",),
 }
+# powered tests see every component the passive cut-outs do (after them in the cascade)
+_POWERED = (eps_assist.CHARACTERISTIC_STAGE, eps_assist.DAMPING_STAGE)
+COMPONENT_SCENARIOS = {c: s + _POWERED for c, s in COMPONENT_SCENARIOS.items()}
 
 # The search keeps the Stribeck velocity above 0.3× its typical value: below, the
 # implicit friction step needs h < m/slope and one tire simulation costs minutes.
@@ -254,4 +373,8 @@ EPS_MODEL = ModelDefinition(
     component_scenarios=COMPONENT_SCENARIOS,
     hysteresis=("input", "steering_torque_nm", "steering angle [deg]", "steering torque [N·m]",
                 180.0 / np.pi),
+    informed_by=eps_assist.informed_by,
+    specialise=eps_assist.specialise,
+    carry_through=("suspended",),
+    report=lambda result, figdir: eps_assist_report.write(result, figdir),
 )

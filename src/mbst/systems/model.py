@@ -108,6 +108,29 @@ class ModelDefinition:
         ``benchmark(base_result, extended_params) -> dict`` of family-specific
         figures of merit (EMPS: the published error measures), written as
         ``benchmark.json`` beside ``discovery.json``.
+    stages_of
+        The cascade stages a prepared test serves (default: its scenario's;
+        the EPS rig sends powered tests to its assist stages, and engine-off
+        tests of the same cut-outs there too, as seed 001 Table 1 does).
+    informed_by
+        Whether a stage's tests inform a parameter at all (default: yes); a
+        parameter they do not inform is handed on to the next stage, e.g. the
+        assist curve of a mode no test of the stage runs in.
+    refines
+        Parameters a stage refits although an earlier stage fixed them (seed
+        001 Table 1: the dry friction with the assist curve, the viscous
+        terms with the active damping).
+    report
+        ``report(identify_result, figure_dir) -> markdown lines``: the
+        family's own figures and tables (the EPS power assist).
+    carry_through
+        Stages that fit only what they isolate and hand parameters carried from
+        a skipped stage on to the next one (the EPS rig's ``suspended``: free
+        wheels load the tie-rods too lightly to pin their stiffness).
+    specialise
+        ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
+        a particular campaign brings (one assist curve per ``assist_mode``, one
+        active damping per vehicle speed); ``None`` if the family has none.
     """
 
     name: str
@@ -125,6 +148,12 @@ class ModelDefinition:
     hysteresis: tuple[str, str, str, str, float] | None = None
     evidence_methods: tuple[str, ...] = ("sparse", "neural")
     benchmark: Callable[..., dict] | None = None
+    stages_of: Callable[[Any], tuple[str, ...]] = lambda pt: (pt.scenario,)
+    informed_by: Callable[[str, list], bool] = lambda name, tests: True
+    specialise: Callable[[ModelDefinition, Any], ModelDefinition] | None = None
+    refines: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    carry_through: tuple[str, ...] = ()
+    report: Callable[[Any, Any], list[str]] | None = None
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 
@@ -158,3 +187,11 @@ class ModelDefinition:
 
     def stage_free(self) -> dict[str, tuple[str, ...]]:
         return dict(self.cascade)
+
+    def stage_tests(self, stage: str, tests: list) -> list:
+        """The tests of ``tests`` that serve cascade stage ``stage``."""
+        return [pt for pt in tests if stage in self.stages_of(pt)]
+
+    def for_campaign(self, campaign: Any) -> ModelDefinition:
+        """This definition with the parameters ``campaign`` brings (itself if none)."""
+        return self if self.specialise is None else self.specialise(self, campaign)
