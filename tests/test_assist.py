@@ -17,7 +17,7 @@ from mbst.bench import (
 )
 from mbst.campaign import CampaignError, read_campaign
 from mbst.fitting import prepare_test, simulate_twin
-from mbst.identify import IdentifySettings, correlate, identify, run_cascade, write_identify_outputs
+from mbst.identify import IdentifySettings, correlate, run_cascade, write_identify_outputs
 from mbst.systems import eps_assist
 
 
@@ -30,13 +30,26 @@ def clean_assist(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def identified(clean_assist, tmp_path_factory):
+def discovered(clean_assist):
+    """Discovery on the clean powered campaign; its base fit is the identification."""
+    from mbst.discovery.pipeline import DiscoverSettings, discover
+
+    camp, _ = clean_assist
+    return discover(camp, DiscoverSettings(max_effects=1, sparse=False, neural=False))
+
+
+@pytest.fixture(scope="module")
+def identified(clean_assist, discovered, tmp_path_factory):
     camp, truth = clean_assist
-    settings = IdentifySettings()
-    result = identify(camp, settings)
+    result = discovered.base
     out = tmp_path_factory.mktemp("assist-id")
-    write_identify_outputs(result, out, settings)
+    write_identify_outputs(result, out, IdentifySettings())
     return camp, truth, result, out
+
+
+def test_clean_powered_campaign_gives_an_empty_answer(discovered):
+    """The counterpart of the hidden-backlash test: nothing to name on a clean rig."""
+    assert discovered.findings == [], [f"{f.effect}:{f.component}" for f in discovered.findings]
 
 
 def test_campaign_brings_one_curve_per_mode_and_one_damping_per_speed(clean_assist):
