@@ -12,20 +12,20 @@ import pytest
 from mbst.bench import BenchRecipe, PlannedTest, run_bench
 from mbst.campaign import CampaignError, read_campaign
 from mbst.cli import main
+from mbst.fitting import channel_scales, hac_meat, residual_memory
 from mbst.identify import IdentifySettings, correlate, identify
 from mbst.plots import motion_reversals
+from mbst.systems.eps_model import rate_noise, smooth_input, standstill
 from mbst.systems.eps_params import PARAM_INDEX, vector_from
 
-# Parameters the demo campaign pins down tightly (rel. std error well below 1 %).
+# The fit's own verdict must cover these (a guard against an empty "identifiable" set).
 WELL_DETERMINED = (
     "torsion_bar.stiffness_nm_per_rad",
+    "steering_column.coulomb_nm",
     "tie_rods.stiffness_n_per_m",
     "tires.centring_stiffness_n_per_m",
     "tires.coulomb_n",
     "tires.viscous_ns_per_m",
-    "offset.rack_position_m",
-    "offset.tie_rod_force_left_n",
-    "offset.tie_rod_force_right_n",
 )
 
 
@@ -44,11 +44,41 @@ def backlash(tmp_path_factory):
     return camp, identify(camp, IdentifySettings())
 
 
-def test_clean_campaign_recovers_well_determined_parameters(clean):
-    _, truth, res = clean
-    for name in WELL_DETERMINED:
+def test_clean_campaign_recovers_every_identifiable_parameter(clean):
+    """Issue #3: what the fit calls identifiable comes back within 5 % of truth.
+
+    Sensor offsets sit near zero, so theirs is an absolute bound: 0.5 % of
+    the channel's spread. The split of rack and motor friction, the column's
+    viscous term and the worm-gear mesh are not identifiable from the demo's
+    three sensors; the fit must say so rather than pass them off as found.
+    """
+    camp, truth, res = clean
+    scales = channel_scales([res.prepared[s.id] for s in camp.identification_tests()])
+    identified = [n for st in res.stages for n in st.free if st.identifiable[n]]
+    assert set(WELL_DETERMINED) <= set(identified)
+    for name in identified:
         i = PARAM_INDEX[name]
-        assert res.params[i] == pytest.approx(truth[i], rel=0.05), name
+        if name.startswith("offset."):
+            ch = camp.model().offset_channels[name]
+            assert abs(res.params[i] - truth[i]) < 0.005 * scales[ch], name
+        else:
+            assert res.params[i] == pytest.approx(truth[i], rel=0.05), name
+    for name in ("motor.coulomb_nm", "steering_column.viscous_nms_per_rad"):
+        assert name not in identified, name
+
+
+def test_standard_errors_widen_with_residual_memory():
+    """The Newey–West meat equals s²·JᵀJ for white residuals and grows for correlated ones."""
+    rng = np.random.default_rng(0)
+    n = 4000
+    jac = np.column_stack([np.ones(n), np.linspace(-1, 1, n)])
+    white = rng.standard_normal(n)
+    classical = white @ white / (n - 2) * jac.T @ jac
+    assert np.allclose(np.diag(hac_meat(jac, white, [n], 2)), np.diag(classical), rtol=0.1)
+    slow = np.convolve(rng.standard_normal(n + 49), np.ones(50) / np.sqrt(50), "valid")
+    assert residual_memory(slow) > 30
+    widened = hac_meat(jac, slow, [n], 2)
+    assert widened[0, 0] > 10 * (slow @ slow / (n - 2)) * n
 
 
 def test_clean_fit_reaches_the_noise_floor_on_controls(clean):
@@ -149,3 +179,33 @@ def test_cli_identify_writes_params_and_correlation(tmp_path):
     leftovers = [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
     assert not leftovers
     shutil.rmtree(out)
+
+
+def test_rate_noise_and_standstill_are_read_from_the_angle():
+    dt = 0.002
+    t = np.arange(0.0, 6.0, dt)
+    clean = np.radians(5) * np.sin(2 * np.pi * 0.5 * t) * (t > 1.0)
+    noisy = clean + np.radians(0.05) * np.random.default_rng(0).standard_normal(len(t))
+    _, rate_clean = smooth_input(clean, dt)
+    _, rate_noisy = smooth_input(noisy, dt)
+    true_noise = np.std(rate_noisy - rate_clean)
+    assert rate_noise(clean, dt) < 1e-3 * true_noise
+    assert rate_noise(noisy, dt) == pytest.approx(true_noise, rel=0.1)
+    still = standstill(smooth_input(noisy, dt)[0], 2e-4, dt)
+    assert still[t < 0.9].mean() > 0.9 and still[t > 1.2].mean() < 0.05
+
+
+def test_angle_noise_does_not_bias_the_column_friction(tmp_path):
+    """The blocked column alone, with the bench's 0.05° of angle noise: a twin that
+    switched its column friction on the noisy rate gave −19 % here."""
+    from mbst.bench import compact_plan
+    from mbst.identify import run_cascade
+
+    recipe = BenchRecipe(effects=[], plan=compact_plan()[:2], seed=0)
+    camp = read_campaign(run_bench(tmp_path, recipe))
+    truth = recipe.true_params()
+    only = {"torsion_bar.stiffness_nm_per_rad", "steering_column.coulomb_nm",
+            "steering_column.viscous_nms_per_rad"}
+    p, *_ = run_cascade(camp, IdentifySettings(), base=truth, only=only)
+    i = PARAM_INDEX["steering_column.coulomb_nm"]
+    assert p[i] == pytest.approx(truth[i], rel=0.05)

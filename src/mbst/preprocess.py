@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter
+from scipy.signal import lfilter, savgol_coeffs, savgol_filter
 
 
 def filter_alpha(dt_s: float, tau_s: float) -> float:
@@ -34,6 +34,28 @@ def exponential_filter(x: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
     zi = (1.0 - a) * x[:1]
     y, _ = lfilter([a], [1.0, -(1.0 - a)], x, axis=0, zi=zi)
     return y
+
+
+def filtered_noise_gain(dt_s: float, tau_s: float) -> float:
+    """Standard deviation of the filtered output per unit of white input noise: √(α/(2−α))."""
+    a = filter_alpha(dt_s, tau_s)
+    return math.sqrt(a / (2.0 - a))
+
+
+def white_noise_std(x: np.ndarray, dt_s: float, window_s: float = 0.1) -> float:
+    """Sensor-noise level of a sampled signal, from what a local cubic leaves out.
+
+    The robust spread (MAD) of ``x`` minus its Savitzky–Golay fit over
+    ``window_s``, corrected for the share of the noise the fit keeps. Smooth
+    signal content and rare steps do not count; 0 for a clean signal.
+    """
+    x = np.asarray(x, float)
+    n = int(round(window_s / dt_s)) | 1
+    if n < 5 or len(x) <= n:
+        return 0.0
+    left = x - savgol_filter(x, n, 3, mode="interp")
+    h0 = savgol_coeffs(n, 3)[n // 2]
+    return 1.4826 * float(np.median(np.abs(left - np.median(left)))) / math.sqrt(1.0 - h0)
 
 
 def filter_channels(

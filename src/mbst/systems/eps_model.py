@@ -10,8 +10,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.signal import savgol_filter
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
+from scipy.signal import savgol_coeffs, savgol_filter
 
+from mbst.preprocess import white_noise_std
 from mbst.systems import eps, eps_assist, eps_assist_report
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_channels import OUTPUT_CHANNELS, SYSTEM_NAME
@@ -68,6 +70,7 @@ OFFSET_CHANNEL = {
 
 
 INPUT_WINDOW_S = 0.1
+_COL_SWITCH = PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]
 
 
 def smooth_input(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WINDOW_S
@@ -86,6 +89,52 @@ def smooth_input(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WIN
     ang = savgol_filter(angle_rad, n, 3, mode="interp")
     rate = savgol_filter(angle_rad, n, 3, deriv=1, delta=dt_s, mode="interp")
     return ang, rate
+
+
+# erf(ω/(√2σ)) and tanh(ω/v) have the same slope at zero for v = √(π/2)·σ
+_ERF_AS_TANH = float(np.sqrt(np.pi / 2.0))
+
+
+def rate_noise(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WINDOW_S) -> float:
+    """Standard deviation of the noise on the smoothed rate of ``smooth_input``:
+    the angle's white-noise level times the norm of the derivative kernel."""
+    n = int(round(window_s / dt_s)) | 1
+    if n < 5 or len(angle_rad) <= n:
+        return 0.0
+    gain = float(np.linalg.norm(savgol_coeffs(n, 3, deriv=1, delta=dt_s)))
+    return white_noise_std(angle_rad, dt_s, window_s) * gain
+
+
+STANDSTILL_WINDOW_S = 0.2
+
+
+def standstill(angle_rad: np.ndarray, noise_rad: float, dt_s: float,
+               window_s: float = STANDSTILL_WINDOW_S) -> np.ndarray:
+    """Samples where the smoothed angle stays inside its noise band for ``window_s``.
+
+    There the smoothed rate is noise alone and the rig stands still; a twin
+    driven by that noise would switch its column friction at random.
+    """
+    if noise_rad <= 0.0:
+        return np.zeros(len(angle_rad), bool)
+    n = max(int(round(window_s / dt_s)), 3)
+    swing = maximum_filter1d(angle_rad, n) - minimum_filter1d(angle_rad, n)
+    return swing < 6.0 * noise_rad
+
+
+def effective_column_switch(v_eps: np.ndarray, rate_noise_rad_per_s: float) -> np.ndarray:
+    """Regularisation velocity of the column friction as seen through a noisy rate.
+
+    The column friction is the only one driven by a measured speed. Near a
+    reversal the sign of the smoothed rate is uncertain by its noise σ, so
+    the torque to expect given that rate is F_c·erf(ω/(√2σ)), not the
+    rig's sharp switch: a twin with the sharp switch flips at random there,
+    and least squares pays it back with a low F_c and a high viscous term
+    (−30 % and +500 % on the bench at 0.05° of angle noise). The twin
+    therefore switches over √(v_ε² + (√(π/2)·σ)²); with a clean angle this
+    is v_ε.
+    """
+    return np.sqrt(np.square(v_eps) + (_ERF_AS_TANH * rate_noise_rad_per_s) ** 2)
 
 
 # -------------------------------------------------------------------------------------
@@ -310,15 +359,28 @@ def _pre_identify_assist(tests: list[PreparedTest], p: np.ndarray, out: dict, co
 # -------------------------------------------------------------------------------------
 def prepare_inputs(frame, dt_s: float, spec, window_s: float = INPUT_WINDOW_S
                    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """The rig is driven by the measured steering angle, smoothed without lag."""
-    ang, rate = smooth_input(frame["steering_angle_rad"].to_numpy(float), dt_s, window_s)
-    return ang, rate, {}
+    """The rig is driven by the measured steering angle, smoothed without lag.
+
+    The noise left on the smoothed rate goes along (``rate_noise_rad_per_s``):
+    the twin's column friction switch depends on it.
+    """
+    raw = frame["steering_angle_rad"].to_numpy(float)
+    ang, rate = smooth_input(raw, dt_s, window_s)
+    n = int(round(window_s / dt_s)) | 1
+    if n >= 5 and len(raw) > n:
+        noise = white_noise_std(raw, dt_s, window_s)
+        rate = np.where(standstill(ang, noise * float(np.linalg.norm(savgol_coeffs(n, 3))), dt_s),
+                        0.0, rate)
+    return ang, rate, {"rate_noise_rad_per_s": np.asarray(rate_noise(raw, dt_s, window_s))}
 
 
 def simulate_batch(pt, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Simulate many parameter vectors on one test in parallel (numba prange)."""
     ps = eps_assist.route(pt.model, pt.spec, np.atleast_2d(ps))
-    ps = np.ascontiguousarray(ps, dtype=np.float64)
+    ps = np.array(ps, dtype=np.float64)  # a copy: the column switch is the twin's, not a fit's
+    noise = float(pt.inputs.get("rate_noise_rad_per_s", 0.0))
+    if noise > 0.0:
+        ps[:, _COL_SWITCH] = effective_column_switch(ps[:, _COL_SWITCH], noise)
     raw = eps.simulate_raw_batch(pt.scenario, pt.spec.motor, pt.input_signal, pt.input_rate, ps,
                                  pt.dt_s)
     out = []
