@@ -42,6 +42,12 @@ def filtered_noise_gain(dt_s: float, tau_s: float) -> float:
     return math.sqrt(a / (2.0 - a))
 
 
+def cubic_window(n_samples: int, dt_s: float, window_s: float) -> int | None:
+    """Odd length of a local-cubic (Savitzky–Golay) window, or None if the signal is too short."""
+    n = int(round(window_s / dt_s)) | 1
+    return n if 5 <= n < n_samples else None
+
+
 def white_noise_std(x: np.ndarray, dt_s: float, window_s: float = 0.1) -> float:
     """Sensor-noise level of a sampled signal, from what a local cubic leaves out.
 
@@ -50,8 +56,8 @@ def white_noise_std(x: np.ndarray, dt_s: float, window_s: float = 0.1) -> float:
     signal content and rare steps do not count; 0 for a clean signal.
     """
     x = np.asarray(x, float)
-    n = int(round(window_s / dt_s)) | 1
-    if n < 5 or len(x) <= n:
+    n = cubic_window(len(x), dt_s, window_s)
+    if n is None:
         return 0.0
     left = x - savgol_filter(x, n, 3, mode="interp")
     h0 = savgol_coeffs(n, 3)[n // 2]

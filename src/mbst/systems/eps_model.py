@@ -13,7 +13,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from mbst.preprocess import white_noise_std
+from mbst.preprocess import cubic_window, white_noise_std
 from mbst.systems import eps, eps_assist, eps_assist_report
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_channels import OUTPUT_CHANNELS, SYSTEM_NAME
@@ -82,8 +82,8 @@ def smooth_input(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WIN
     at random near every reversal. A local cubic over ``window_s`` removes
     the noise without lag, and its analytic derivative is the rate.
     """
-    n = int(round(window_s / dt_s)) | 1
-    if n < 5 or len(angle_rad) <= n:
+    n = cubic_window(len(angle_rad), dt_s, window_s)
+    if n is None:
         ang = np.asarray(angle_rad, float).copy()
         return ang, np.gradient(ang, dt_s)
     ang = savgol_filter(angle_rad, n, 3, mode="interp")
@@ -95,14 +95,24 @@ def smooth_input(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WIN
 _ERF_AS_TANH = float(np.sqrt(np.pi / 2.0))
 
 
+def smoothing_noise(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WINDOW_S
+                    ) -> tuple[float, float]:
+    """Noise left on the smoothed angle and on its rate by ``smooth_input``.
+
+    The angle's white-noise level times the norm of the cubic's smoothing
+    and derivative kernels; (0, 0) for a clean angle or a too short test.
+    """
+    n = cubic_window(len(angle_rad), dt_s, window_s)
+    if n is None:
+        return 0.0, 0.0
+    sigma = white_noise_std(angle_rad, dt_s, window_s)
+    return (sigma * float(np.linalg.norm(savgol_coeffs(n, 3))),
+            sigma * float(np.linalg.norm(savgol_coeffs(n, 3, deriv=1, delta=dt_s))))
+
+
 def rate_noise(angle_rad: np.ndarray, dt_s: float, window_s: float = INPUT_WINDOW_S) -> float:
-    """Standard deviation of the noise on the smoothed rate of ``smooth_input``:
-    the angle's white-noise level times the norm of the derivative kernel."""
-    n = int(round(window_s / dt_s)) | 1
-    if n < 5 or len(angle_rad) <= n:
-        return 0.0
-    gain = float(np.linalg.norm(savgol_coeffs(n, 3, deriv=1, delta=dt_s)))
-    return white_noise_std(angle_rad, dt_s, window_s) * gain
+    """Standard deviation of the noise on the smoothed rate of ``smooth_input``."""
+    return smoothing_noise(angle_rad, dt_s, window_s)[1]
 
 
 STANDSTILL_WINDOW_S = 0.2
@@ -366,12 +376,9 @@ def prepare_inputs(frame, dt_s: float, spec, window_s: float = INPUT_WINDOW_S
     """
     raw = frame["steering_angle_rad"].to_numpy(float)
     ang, rate = smooth_input(raw, dt_s, window_s)
-    n = int(round(window_s / dt_s)) | 1
-    if n >= 5 and len(raw) > n:
-        noise = white_noise_std(raw, dt_s, window_s)
-        rate = np.where(standstill(ang, noise * float(np.linalg.norm(savgol_coeffs(n, 3))), dt_s),
-                        0.0, rate)
-    return ang, rate, {"rate_noise_rad_per_s": np.asarray(rate_noise(raw, dt_s, window_s))}
+    angle_noise, omega_noise = smoothing_noise(raw, dt_s, window_s)
+    rate = np.where(standstill(ang, angle_noise, dt_s), 0.0, rate)
+    return ang, rate, {"rate_noise_rad_per_s": np.asarray(omega_noise)}
 
 
 def simulate_batch(pt, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
