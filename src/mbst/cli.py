@@ -91,7 +91,8 @@ def _cmd_discover(args: argparse.Namespace) -> int:
         identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart),
         max_effects=args.max_effects, min_relative_gain=args.min_gain,
         min_aic_drop=args.min_aic_drop,
-        sparse=not args.no_sparse, neural=not args.no_neural, progress=not args.quiet,
+        sparse=not args.no_sparse, neural=not args.no_neural,
+        stick_slip=not args.no_stick_slip, progress=not args.quiet,
     )
     result = run_discover(camp, args.out, settings)
     if not args.quiet:
@@ -203,6 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "the EPS bench)")
     p.add_argument("--no-sparse", action="store_true", help="skip the sparse regression")
     p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
+    p.add_argument("--no-stick-slip", action="store_true",
+                   help="skip the phase-free stick-slip test for Stribeck friction")
     p.set_defaults(func=_cmd_discover)
 
     p = add("plan", "plan a campaign before running it: sensors, cut-outs and inputs that "

@@ -91,6 +91,8 @@ def discover_skip_args(wildcards):
     flags = []
     if not config["discover"]["sparse_regression"]:
         flags.append("--no-sparse")
+    if not config["discover"]["stick_slip"]:
+        flags.append("--no-stick-slip")
     if not config["discover"]["neural_residual"]:
         flags.append("--no-neural")
     return " ".join(flags)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from mbst import plots
+from mbst.discovery import stickslip
 from mbst.plots import LABELS, MODEL_STYLE, SCALE, motion_reversals, plt
 
 
@@ -69,11 +70,14 @@ def structure_bars(result, path: Path) -> None:
         y = np.arange(len(cands))[::-1]
         ax.barh(y, gains, color=colors)
         ax.set_yticks(y, [f"{c['key']} ({c['stage']})" for c in cands], fontsize=7)
-        ax.axvline(100 * result_margin(result), color="tab:red", ls="--", lw=1,
-                   label="acceptance margin")
-        ax.set_xlabel("residual cost removed in its stage [%]", fontsize=8)
+        stick = r.get("method") == "stick_slip"
+        ax.axvline(100 * (stickslip.MIN_GAIN if stick else result_margin(result)),
+                   color="tab:red", ls="--", lw=1, label="acceptance margin")
+        ax.set_xlabel("fast-envelope misfit removed in its stage [%]" if stick
+                      else "residual cost removed in its stage [%]", fontsize=8)
         acc = r["accepted"] or "none"
-        ax.set_title(f"round {r['round']}: accepted {acc}", fontsize=9)
+        kind = " (stick-slip test)" if stick else ""
+        ax.set_title(f"round {r['round']}{kind}: accepted {acc}", fontsize=9)
         ax.grid(axis="x", alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
@@ -110,6 +114,52 @@ def comparison_bars(result, path: Path) -> None:
     plots._save(fig, path)
 
 
+def stick_slip(result, path: Path) -> bool:
+    """Fast part and its envelope on the test with the most stick-slip misfit.
+
+    Drawn when the stick-slip test ran: measured vs base vs extended, high-passed
+    (the sawtooth, whose phase no model can repeat) and as √power over the window
+    (what the test compares). Returns whether a figure was written.
+    """
+    from mbst.fitting import simulate_twin
+
+    rec = next((r for r in result.rounds if r.get("method") == "stick_slip"), None)
+    if rec is None or not rec.get("base_misfit"):
+        return False
+    stage = next((c["stage"] for c in rec["candidates"] if c["key"] == rec["accepted"]),
+                 None) or max(rec["base_misfit"], key=rec["base_misfit"].get)
+    ids = [result.base.prepared[r.id] for r in result.residual_tests]
+    tests = result.base.model.stage_tests(stage, ids)
+    if not tests:
+        return False
+    twins = {pt.id: {"base": simulate_twin(pt, result.base.params),
+                     "extended": simulate_twin(pt, result.extended_params)} for pt in tests}
+    pt = max(tests, key=lambda t: stickslip.envelope_misfit(t, twins[t.id]["base"]))
+    ch = next(c for c in pt.model.output_channels if c in pt.measured)
+    s = SCALE.get(ch, 1.0)
+    hp = lambda y: stickslip.highpass(y, pt.dt_s)  # noqa: E731
+    pn = pt.noise.get(ch, 0.0) ** 2 * stickslip.noise_hf_fraction(pt.dt_s, pt.tau_s)
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5.6), sharex=True)
+    axes[0].plot(pt.time_s, s * hp(pt.measured[ch]), color="black", lw=1.0, label="measured")
+    axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(pt.measured[ch], pt.dt_s)),
+                 color="black", lw=1.4, label="measured")
+    for name in ("base", "extended"):
+        y = twins[pt.id][name][ch]
+        axes[0].plot(pt.time_s, s * hp(y), label=name, **MODEL_STYLE.get(name, {}))
+        axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(y, pt.dt_s) + pn),
+                     label=f"{name} + sensor noise", **MODEL_STYLE.get(name, {}))
+    plots._style(axes[0], f"{pt.id}: {LABELS[ch]} above {stickslip.HIGHPASS_HZ:g} Hz "
+                 "(the stick-slip sawtooth; its phase is not repeatable)", LABELS[ch], "")
+    verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
+    plots._style(axes[1], f"envelope over {stickslip.WINDOW_S:g} s: what the stick-slip test "
+                 f"compares ({stage}, {verdict})", f"rms {LABELS[ch]}")
+    for ax in axes:
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    plots._save(fig, path)
+    return True
+
+
 def write_all(result, figdir: Path) -> None:
     prepared = result.base.prepared
     controls = [prepared[t] for t in dict.fromkeys(result.comparison.test)]
@@ -117,6 +167,7 @@ def write_all(result, figdir: Path) -> None:
     shown = controls or [prepared[r.id] for r in result.residual_tests]
     reversal_zoom(result, figdir / "reversal_zoom.png")
     structure_bars(result, figdir / "structure_test.png")
+    stick_slip(result, figdir / "stick_slip.png")
     comparison_bars(result, figdir / "comparison.png")
     plots.time_histories(shown, models, figdir / "time_histories.png")
     plots.hysteresis_loops(shown, {m: models[m] for m in ("base", "extended") if m in models},

@@ -62,6 +62,7 @@ class DiscoverSettings:
     cv_nfev: int = 8
     sparse: bool = True
     neural: bool = True
+    stick_slip: bool = True
     neural_iterations: int | None = None
     progress: bool = False
 
@@ -77,7 +78,7 @@ class Finding:
     evidence: str
     stage: str
     relative_gain: float
-    aic_delta: float
+    aic_delta: float | None  # None where the criterion is not the output error (stick-slip)
     cv: dict
 
     def record(self) -> dict:
@@ -324,6 +325,17 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     if bar is not None:
         bar.close()
     timings["structure_s"] = time.perf_counter() - t0
+    stick_finding = None
+    if settings.stick_slip and "stick_slip" in model.evidence_methods and \
+            len(accepted) < settings.max_effects:
+        t0 = time.perf_counter()
+        rec, stick_finding, p_stick = _stick_slip_round(ids, p, set(accepted), rounds)
+        rounds.append(rec)
+        if stick_finding is not None:
+            accepted.append(rec["accepted"])
+            p = p_stick
+            cost_cur, _ = total_cost(ids, p, scales, ids_settings.decimate)
+        timings["stick_slip_s"] = time.perf_counter() - t0
 
     # independent evidence from the regressions (identification tests only)
     sparse_ev = neural_ev = None
@@ -348,6 +360,8 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
             evidence=_evidence(best, runner, cv, regions, sparse_ev, neural_ev),
             stage=best.stage, relative_gain=best.relative_gain, aic_delta=best.aic_delta, cv=cv,
         ))
+    if stick_finding is not None:
+        findings.append(stick_finding)
 
     # the held-out control tests measure the gain; they decided nothing above
     t0 = time.perf_counter()
@@ -370,6 +384,68 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         neural_model=neural_model, residual_tests=id_res, settings=settings,
         benchmark=benchmark,
     )
+
+
+def _stick_slip_round(ids: list[PreparedTest], p: np.ndarray, accepted: set[str],
+                      rounds: list[dict]) -> tuple[dict, Finding | None, np.ndarray]:
+    """The phase-free Stribeck test, after the output-error rounds found nothing more."""
+    from mbst.discovery import stickslip
+
+    base_misfit, scores = stickslip.stick_slip_test(ids, p, exclude=accepted)
+    rec = {"round": len(rounds) + 1, "method": "stick_slip",
+           "base_misfit": {k: round(v, 4) for k, v in base_misfit.items()},
+           "candidates": [s.record() for s in scores], "accepted": None, "reason": ""}
+    worst = max(base_misfit.items(), key=lambda kv: kv[1], default=("", 0.0))
+    if not scores:
+        rec["reason"] = (f"no stick-slip: the fast (> {stickslip.HIGHPASS_HZ:g} Hz) envelope "
+                         f"of the base model fits to {worst[1]:.2f} noise-power units at worst "
+                         f"({worst[0]}); the threshold is {stickslip.MIN_BASE_MISFIT:g}")
+        return rec, None, p
+    best = scores[0]
+    if best.relative_gain < stickslip.MIN_GAIN or best.wins * 2 <= len(best.per_test):
+        rec["reason"] = (f"best Stribeck candidate {best.key} removes "
+                         f"{100 * best.relative_gain:.0f} % of the envelope misfit and lowers it "
+                         f"on {best.wins}/{len(best.per_test)} tests; the margin is "
+                         f"{100 * stickslip.MIN_GAIN:.0f} % on most tests")
+        return rec, None, p
+    rec["accepted"] = best.key
+    runner = next((s for s in scores[1:] if s.stage == best.stage), None)
+    confidence = best.relative_gain * best.wins / len(best.per_test)
+    if best.decided_by != "misfit":
+        confidence *= 0.5
+    pars = ", ".join(f"{k} {v:.3g}" for k, v in best.headline.items())
+    parts = [
+        f"stick-slip: the base model leaves {best.misfit_base:.1f} noise-power units of "
+        f"misfit in the fast (> {stickslip.HIGHPASS_HZ:g} Hz) envelope of the {best.stage} "
+        f"tests (clean campaigns < {stickslip.MIN_BASE_MISFIT:g})",
+        f"Stribeck friction in {best.component} ({pars}) removes "
+        f"{100 * best.relative_gain:.0f} % of it, lower on {best.wins}/{len(best.per_test)} tests",
+    ]
+    if runner is not None:
+        parts.append(f"runner-up {runner.key} removes {100 * runner.relative_gain:.0f} %"
+                     + (f" with {', '.join(runner.at_bound)} on its bound"
+                        if runner.at_bound else ""))
+    if best.decided_by == "typical size":
+        parts.append("a near tie, named by the more typical size (the elements move as one "
+                     "body in this stage: a motor angle sensor or a blocked-rack test separates "
+                     "them)")
+    elif best.decided_by == "range":
+        parts.append("the better-fitting look-alike needs a size on the edge of its range")
+    prev = next((r for r in reversed(rounds) if r.get("candidates")), None)
+    if prev is not None and prev["candidates"]:
+        top = prev["candidates"][0]
+        parts.append(f"the output-error structure test cannot see it (the sawtooth's phase is "
+                     f"not repeatable): its best candidate {top['key']} removed "
+                     f"{100 * top['relative_gain']:.1f} %")
+    finding = Finding(
+        effect=best.effect, component=best.component, parameters=best.headline,
+        confidence=confidence, evidence="; ".join(parts), stage=best.stage,
+        relative_gain=best.relative_gain, aic_delta=None,
+        cv={"folds": len(best.per_test), "wins": best.wins, "criterion": "envelope misfit",
+            "per_test": {k: {"misfit_base": b, "misfit": c}
+                         for k, (b, c) in best.per_test.items()}},
+    )
+    return rec, finding, best.params.copy()
 
 
 def _identify_base(campaign: Campaign, settings: IdentifySettings) -> IdentifyResult:

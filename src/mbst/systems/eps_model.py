@@ -445,5 +445,6 @@ EPS_MODEL = ModelDefinition(
     informed_by=eps_assist.informed_by,
     specialise=eps_assist.specialise,
     carry_through=("suspended",),
+    evidence_methods=("sparse", "neural", "stick_slip"),
     report=lambda result, figdir: eps_assist_report.write(result, figdir),
 )

@@ -103,7 +103,9 @@ class ModelDefinition:
         loop plot engineers read (steering angle vs torque for EPS).
     evidence_methods
         Which regressions run beside the structure test (``sparse``, ``neural``):
-        their libraries are built from this family's internal states.
+        their libraries are built from this family's internal states; and
+        ``stick_slip``, the phase-free test for Stribeck friction when the
+        output-error structure test finds nothing (``discovery/stickslip.py``).
     benchmark
         ``benchmark(base_result, extended_params) -> dict`` of family-specific
         figures of merit (EMPS: the published error measures), written as

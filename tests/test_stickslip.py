@@ -1,0 +1,81 @@
+"""The phase-free envelope test for Stribeck stick-slip (discovery/stickslip.py)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from mbst.discovery.stickslip import (
+    MIN_BASE_MISFIT,
+    StickSlipScore,
+    envelope_misfit,
+    rank,
+)
+from mbst.preprocess import exponential_filter
+
+DT, TAU, NOISE = 0.002, 0.01, 0.02
+
+
+def _rig(phase: float, stick_slip: bool, noise_seed: int | None = None) -> np.ndarray:
+    """A slow drive with a 6 Hz sawtooth during two slow phases, filtered like a channel."""
+    t = np.arange(0.0, 8.0, DT)
+    y = 2.0 * np.sin(2 * np.pi * 0.25 * t)
+    if stick_slip:
+        saw = 0.3 * (((6.0 * t + phase) % 1.0) - 0.5)
+        y = y + saw * ((np.abs(t - 2.0) < 0.6) | (np.abs(t - 6.0) < 0.6))
+    if noise_seed is not None:
+        y = y + NOISE * np.random.default_rng(noise_seed).standard_normal(len(t))
+    return exponential_filter(y, DT, TAU)
+
+
+def _test(measured: np.ndarray) -> SimpleNamespace:
+    from mbst.preprocess import filtered_noise_gain
+
+    return SimpleNamespace(measured={"steering_torque_nm": measured}, dt_s=DT, tau_s=TAU,
+                           noise={"steering_torque_nm": NOISE * filtered_noise_gain(DT, TAU)})
+
+
+def test_envelope_misfit_ignores_the_phase_of_a_sawtooth_that_output_error_punishes():
+    pt = _test(_rig(0.0, True, noise_seed=1))
+    meas = pt.measured["steering_torque_nm"]
+    twin = lambda y: {"steering_torque_nm": y}  # noqa: E731
+    smooth, shifted = _rig(0.0, False), _rig(0.5, True)
+    # output error prefers the model without stick-slip over the right one out of phase
+    assert np.sum((shifted - meas) ** 2) > np.sum((smooth - meas) ** 2)
+    # the envelope does the opposite, and by far
+    assert envelope_misfit(pt, twin(smooth)) > MIN_BASE_MISFIT
+    assert envelope_misfit(pt, twin(shifted)) < 0.2 * envelope_misfit(pt, twin(smooth))
+
+
+def test_sensor_noise_alone_stays_under_the_search_threshold():
+    for seed in range(3):
+        pt = _test(_rig(0.0, False, noise_seed=seed))
+        assert envelope_misfit(pt, {"steering_torque_nm": _rig(0.0, False)}) < \
+            0.5 * MIN_BASE_MISFIT
+
+
+def _score(key: str, misfit: float, typicality: float = 0.0, at_bound=()) -> StickSlipScore:
+    effect, component = key.split(":")
+    return StickSlipScore(key, effect, component, "free_tie_rods", 100.0, misfit,
+                          np.zeros(1), typicality=typicality, at_bound=list(at_bound))
+
+
+def test_rank_puts_a_size_on_its_bound_behind_an_inside_fit():
+    motor = _score("stribeck_friction:motor", 4.0, at_bound=["static_to_coulomb_ratio"])
+    rack = _score("stribeck_friction:rack", 8.0)
+    order = rank([motor, rack])
+    assert [s.key for s in order] == ["stribeck_friction:rack", "stribeck_friction:motor"]
+    assert order[0].decided_by == "range"
+
+
+def test_rank_breaks_a_near_tie_by_the_more_typical_size():
+    a = _score("stribeck_friction:motor", 1.0, typicality=1.4)
+    b = _score("stribeck_friction:rack", 1.1, typicality=0.2)
+    c = _score("stribeck_friction:steering_column", 90.0)  # removes too little to contend
+    order = rank([a, b, c])
+    assert [s.component for s in order] == ["rack", "motor", "steering_column"]
+    assert order[0].decided_by == "typical size"
+    # outside the tie the misfit decides
+    a2, b2 = _score("stribeck_friction:motor", 1.0, 1.4), _score("stribeck_friction:rack", 2.0)
+    assert rank([b2, a2])[0].component == "motor" and rank([b2, a2])[0].decided_by == "misfit"
