@@ -31,8 +31,19 @@ from mbst.systems.eps_params import EFFECT_CATALOGUE, EFFECTS
 
 SETTINGS = dict(max_effects=1, sparse=False, neural=False)
 
-# Effects the compact plan cannot show at their realistic size, with the reason.
+# Effects the compact plan cannot show at their realistic size, or cannot tell from a
+# look-alike, with the reason (measured 2026-11-22, compact plan seed 1). Strict: a fix
+# shows up as an unexpected pass.
+_ONE_BODY = ("motor and rack move as one body in free tie-rods: the two insertions remove "
+             "the same share of the cost (89.3 vs 89.1 %, 84.8 vs 84.7 %) and the name is a "
+             "coin toss; a motor angle sensor or a blocked-rack test separates them (#6)")
 KNOWN_MISSES = {
+    "asymmetric_friction:motor": _ONE_BODY,
+    "presliding_hysteresis:rack": _ONE_BODY,
+    "power_law_damping:steering_column": (
+        "too small to see: no candidate removes more than 1.3 % of any stage's cost"),
+    "power_law_damping:motor": "1.6 % of the free-tie-rods cost: under the margin",
+    "asymmetric_friction:steering_column": "4.6 % of the blocked-column cost: under the margin",
     "stribeck_friction:steering_column": (
         "the column's Stribeck hump (0.056 N·m, under 3x the torque noise, only below "
         "0.02 rad/s) removes 5 % of the blocked-column cost (ΔAIC -7), under the margin, and "

@@ -266,6 +266,10 @@ class StageScorer:
         per_test = self.costs(fr.p[None])[0]
         per_test_base = self.costs(p_base[None])[0]
         cost = float(per_test.sum())
+        if cost < cost_base:
+            # F-test convention: the noise and its colour are read from the fuller model's
+            # residual; the base residual is coloured by the very effect that is missing
+            n_eff = self.residual_n_eff(fr.p)
         return CandidateScore(
             key=spec.key, effect=spec.effect, component=spec.component, stage=self.stage,
             tests=[pt.id for pt in self.tests], free=free, k_effect=len(spec.free),
