@@ -149,7 +149,8 @@ def stick_slip(result, path: Path) -> bool:
         axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(y, pt.dt_s) + pn),
                      label=f"{name} + sensor noise", **MODEL_STYLE.get(name, {}))
     plots._style(axes[0], f"{pt.id}: {LABELS[ch]} above {stickslip.HIGHPASS_HZ:g} Hz "
-                 "(the stick-slip sawtooth; its phase is not repeatable)", LABELS[ch], "")
+                 "(where a stick-slip sawtooth shows; its phase is not repeatable)",
+                 LABELS[ch], "")
     verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
     plots._style(axes[1], f"envelope over {stickslip.WINDOW_S:g} s: what the stick-slip test "
                  f"compares ({stage}, {verdict})", f"rms {LABELS[ch]}")
