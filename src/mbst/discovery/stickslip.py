@@ -80,13 +80,13 @@ def envelope_misfit(pt: PreparedTest, twin: dict[str, np.ndarray],
     frac = noise_hf_fraction(pt.dt_s, pt.tau_s)
     total, n = 0.0, 0
     for ch, y in pt.measured.items():
-        pn = (pt.noise.get(ch, 0.0) ** 2) * frac
-        if pn <= 0:
+        p_noise = (pt.noise.get(ch, 0.0) ** 2) * frac
+        if p_noise <= 0:
             continue
-        pm = measured_power[ch] if measured_power else hf_power(y, pt.dt_s)
-        pt_ = hf_power(twin[ch], pt.dt_s)
-        gap = np.sqrt(pt_ + pn) - np.sqrt(np.maximum(pm, 0.0))
-        total += float(np.sum(gap * gap) / pn)
+        p_meas = measured_power[ch] if measured_power else hf_power(y, pt.dt_s)
+        p_twin = hf_power(twin[ch], pt.dt_s)
+        gap = np.sqrt(p_twin + p_noise) - np.sqrt(np.maximum(p_meas, 0.0))
+        total += float(np.sum(gap * gap) / p_noise)
         n += len(gap)
     return total / n if n else 0.0
 

@@ -45,7 +45,7 @@ class CandidateScore:
     k_effect: int
     cost_base: float
     cost: float
-    n_eff: float
+    n_eff: float  # effective samples of the candidate's residual (the base's if no better)
     aic_delta: float
     params: np.ndarray = field(repr=False)
     headline: dict[str, float] = field(default_factory=dict)
