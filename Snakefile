@@ -1,4 +1,5 @@
-# mbst workflow: virtual bench (demo campaigns) -> identification -> discovery -> summary.
+# mbst workflow: virtual bench (demo campaigns) -> preprocessing -> identification ->
+# discovery -> summary.
 #
 #   snakemake --cores 2                   # everything in config/config.yaml
 #   snakemake --cores 2 --configfile my.yaml --replace-workflow-config
@@ -25,6 +26,7 @@ report: "workflow/report/workflow.rst"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/bench.smk"
 include: "workflow/rules/import.smk"
+include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/identify.smk"
 include: "workflow/rules/discover.smk"
 include: "workflow/rules/report.smk"
@@ -34,6 +36,7 @@ include: "workflow/rules/plan.smk"
 rule all:
     default_target: True
     input:
+        expand("results/{campaign}/preprocess/preprocess.md", campaign=CAMPAIGNS),
         expand("results/{campaign}/identify/params.json", campaign=CAMPAIGNS),
         expand("results/{campaign}/identify/correlation.csv", campaign=CAMPAIGNS),
         expand("results/{campaign}/identify/identify.md", campaign=CAMPAIGNS),

@@ -58,6 +58,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    from mbst.campaign import read_campaign
+    from mbst.preprocessed import write_preprocessed
+
+    camp = read_campaign(args.campaign)
+    if args.tau < 0:
+        raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
+    out = write_preprocessed(camp, args.out, args.tau)
+    if not args.quiet:
+        print(f"wrote {out}: filtered campaign, noise table, figure (τ = {args.tau * 1e3:g} ms)")
+    return 0
+
+
 def _cmd_identify(args: argparse.Namespace) -> int:
     from mbst.campaign import read_campaign
     from mbst.identify import IdentifySettings, run_identify
@@ -179,6 +192,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="power-steer curve of the powered tests: EPS c1·T + c2·sign(T)·|T|^c3 "
                    "or HPS c1·sign(T)·(e^|T| − 1)")
     p.set_defaults(func=_cmd_bench)
+
+    p = add("preprocess", "write the filtered channels and the model input a fit compares "
+            "(a campaign to inspect), with a sensor-noise table and a raw-vs-filtered figure")
+    p.add_argument("campaign")
+    p.add_argument("--out", required=True,
+                   help="output folder: campaign/, noise.csv, preprocess.md, figures/filter.png")
+    p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
+    p.set_defaults(func=_cmd_preprocess)
 
     p = add("identify", "fit the physics model by cascaded identification; correlate on controls")
     p.add_argument("campaign")

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from mbst.campaign import Campaign, TestSpec
+from mbst.campaign import Campaign, CampaignError, TestSpec
 from mbst.preprocess import exponential_filter, filtered_noise_gain, white_noise_std
 from mbst.systems.model import ModelDefinition
 
@@ -66,6 +66,14 @@ def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
     causal exponential filter as the measured ones, so both sides carry the
     same phase lag (eps-model.md, "Preprocessing").
     """
+    done = campaign.extra.get("preprocessed")
+    if done and tau_s > 0:
+        # filtering twice would compare a twice-filtered measurement with a once-filtered twin
+        raise CampaignError(
+            f"is already filtered (campaign.yaml 'preprocessed:', from "
+            f"{done.get('from', '?') if isinstance(done, dict) else done}); fit the raw "
+            "campaign it came from, or pass --tau 0",
+            campaign=campaign.name, path=campaign.path / "campaign.yaml")
     model = campaign.model()
     df = campaign.frame(spec.id)
     t = df["time_s"].to_numpy(float)

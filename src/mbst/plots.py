@@ -22,8 +22,10 @@ LABELS = {
     "motor_current_a": "motor current [A]",
     "position_m": "position [mm]",
     "motor_force_n": "motor force [N]",
+    "steering_angle_rad": "steering angle [rad]",
+    "position_reference_m": "position reference [mm]",
 }
-SCALE = {"rack_position_m": 1e3, "position_m": 1e3}
+SCALE = {"rack_position_m": 1e3, "position_m": 1e3, "position_reference_m": 1e3}
 MODEL_STYLE = {
     "base": dict(color="tab:red", lw=1.1, ls="--"),
     "extended": dict(color="tab:green", lw=1.1, ls="-"),
@@ -147,3 +149,42 @@ def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) ->
             ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
         _style(ax, f"{pt.id}: residual", LABELS[ch], "time [s] (grey: motion reversals)")
     _finish(fig, axes, path)
+
+
+def filter_effect(tests: list[PreparedTest], path: Path, zoom_s: float = 0.4,
+                  measured_inputs: dict[str, tuple[str, np.ndarray]] | None = None) -> None:
+    """Raw vs filtered measurement of one test: the whole test and a zoom on a reversal.
+
+    The test is the identification test with the most channels (ties: the first);
+    the zoom is centred on its first motion reversal, where friction and backlash
+    act and where the filter's lag matters most. ``measured_inputs`` (test id ->
+    channel name, raw samples) adds a first row: the measured input against the
+    model input derived from it.
+    """
+    ident = [pt for pt in tests if pt.spec.role == "identification"] or tests
+    if not ident:
+        return
+    pt = max(ident, key=lambda p: len(p.measured))
+    rows = [(c, pt.raw[c], pt.measured[c], f"filtered (τ = {pt.tau_s * 1e3:g} ms)")
+            for c in LABELS if c in pt.measured]
+    if measured_inputs and pt.id in measured_inputs:
+        name, raw = measured_inputs[pt.id]
+        rows.insert(0, (name, raw, pt.input_signal, "model input"))
+    rev = motion_reversals(pt.input_rate)
+    centre = pt.time_s[rev[0]] if len(rev) else pt.time_s[len(pt.time_s) // 2]
+    win = np.abs(pt.time_s - centre) <= zoom_s / 2
+    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 2.3 * len(rows)), squeeze=False,
+                             gridspec_kw={"width_ratios": [2, 1]})
+    for i, (ch, raw, used, label) in enumerate(rows):
+        s = SCALE.get(ch, 1.0)
+        for j, mask in enumerate((slice(None), win)):
+            ax = axes[i][j]
+            ax.plot(pt.time_s[mask], s * raw[mask], color="0.7", lw=0.6, label="raw")
+            ax.plot(pt.time_s[mask], s * used[mask], color="tab:blue", lw=1.1, label=label)
+            title = (f"{pt.id}: {ch}" if j == 0
+                     else f"zoom: {zoom_s:g} s around the first reversal")
+            _style(ax, title, LABELS.get(ch, ch))
+        axes[i][0].axvspan(pt.time_s[win][0], pt.time_s[win][-1], color="tab:orange", alpha=0.15)
+        axes[i][0].legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    _save(fig, path)
