@@ -146,6 +146,10 @@ def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
     _, _, result = _run(tmp_path_factory, [], seed=seed)
     assert result.findings == [], [f.evidence for f in result.findings]
     assert "noise floor" in result.rounds[0]["reason"]
+    # every candidate nests the base model (effect off), so none may score below it
+    scored = result.rounds[0]["candidates"]
+    assert len(scored) >= 10
+    assert min(c["relative_gain"] for c in scored) >= 0.0, scored
     assert result.rounds[-1]["method"] == "stick_slip"
     assert "no stick-slip" in result.rounds[-1]["reason"]
     np.testing.assert_array_equal(result.extended_params, result.base.params)

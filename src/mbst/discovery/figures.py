@@ -69,7 +69,10 @@ def structure_bars(result, path: Path) -> None:
         colors = ["tab:green" if c["key"] == r["accepted"] else "tab:blue" for c in cands]
         y = np.arange(len(cands))[::-1]
         ax.barh(y, gains, color=colors)
-        ax.set_yticks(y, [f"{c['key']} ({c['stage']})" for c in cands], fontsize=7)
+        # a refit that ended above the base cost is scored with the effect off (gain 0)
+        ax.set_yticks(y, [f"{c['key']} ({c['stage']})" + (" — refit stuck, off"
+                                                          if c.get("fell_back") else "")
+                          for c in cands], fontsize=7)
         stick = r.get("method") == "stick_slip"
         ax.axvline(100 * (stickslip.MIN_GAIN if stick else result_margin(result)),
                    color="tab:red", ls="--", lw=1, label="acceptance margin")

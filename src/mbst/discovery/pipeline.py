@@ -182,7 +182,8 @@ def cross_validate(scorer: StageScorer, cand: CandidateScore, p_base: np.ndarray
 def _score_record(s: CandidateScore) -> dict:
     return {"key": s.key, "effect": s.effect, "component": s.component, "stage": s.stage,
             "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
-            "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2)}
+            "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2),
+            "fell_back": s.fell_back}
 
 
 def _truth_params(campaign: Campaign, model: ModelDefinition) -> np.ndarray | None:

@@ -55,6 +55,8 @@ class CandidateScore:
     wall_s: float = 0.0
     per_test_cost: dict[str, float] = field(default_factory=dict)
     per_test_cost_base: dict[str, float] = field(default_factory=dict)
+    # the refit ended above the base cost and the effect was left off (neutral)
+    fell_back: bool = False
 
     @property
     def relative_gain(self) -> float:
@@ -266,6 +268,12 @@ class StageScorer:
         per_test = self.costs(fr.p[None])[0]
         per_test_base = self.costs(p_base[None])[0]
         cost = float(per_test.sum())
+        p_fit, fell_back = fr.p, not cost <= cost_base
+        if fell_back:
+            # The candidate nests the base model (effect off at its neutral value), so it
+            # can always do as well as the base; a refit that ended worse is a local
+            # minimum of the short budget, and its score is the base's (gain 0).
+            p_fit, per_test, cost = p_base, per_test_base, cost_base
         if cost < cost_base:
             # F-test convention: the noise and its colour are read from the fuller model's
             # residual; the base residual is coloured by the very effect that is missing
@@ -274,14 +282,15 @@ class StageScorer:
             key=spec.key, effect=spec.effect, component=spec.component, stage=self.stage,
             tests=[pt.id for pt in self.tests], free=free, k_effect=len(spec.free),
             cost_base=cost_base, cost=cost, n_eff=n_eff,
-            aic_delta=aic_delta(cost, cost_base, n_eff, len(spec.free)), params=fr.p,
-            headline={h: float(fr.p[self.model.param_index[n]])
+            aic_delta=aic_delta(cost, cost_base, n_eff, len(spec.free)), params=p_fit,
+            headline={h: float(p_fit[self.model.param_index[n]])
                       for h, n in spec.headline.items()},
             grid_best=grid_best, grid_gain=grid_gain, grid_s=t_grid,
             wall_s=time.perf_counter() - t0 + (start.wall_s if start else 0.0),
             per_test_cost={pt.id: float(c) for pt, c in zip(self.tests, per_test, strict=True)},
             per_test_cost_base={pt.id: float(c)
                                 for pt, c in zip(self.tests, per_test_base, strict=True)},
+            fell_back=fell_back,
         )
 
 
