@@ -40,6 +40,10 @@ def main() -> None:
         for k in KEYS:
             print(f"{k:<42} {b['published'][k]['value']:>10.4g} "
                   f"{b['authors_parameters_here'][k]:>12.4g} {b['base'][k]:>9.4g} {b[k]:>9.4g}")
+        k = "open_loop_fit_percent_test_output_error_parameters"
+        if k in b:
+            print(f"{'  (open loop, output-error parameters)':<42} {'':>10} {'':>12} "
+                  f"{b['base'][k]:>9.4g} {b[k]:>9.4g}")
         gains = []
         for seed in (1, 2, 3):
             c = read_campaign(run_prismatic_bench(Path(tmp) / f"clean{seed}", {}, seed=seed))

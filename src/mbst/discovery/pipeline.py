@@ -645,6 +645,14 @@ def benchmark_table(bench: dict) -> list[str]:
                      f"{fmt(ext)} |")
     lines += ["", "Errors in %, lower is better; FIT in %, higher is better. Definitions in "
               "`benchmark.json`."]
+    key = "open_loop_fit_percent_test"
+    if f"{key}_output_error_parameters" in bench:
+        fmt = lambda v: "–" if v is None else f"{v:.4g}"
+        lines += ["", f"Open-loop FIT: base and extended parameters refitted by open-loop "
+                  "simulation error on the identification run (`open_loop_parameters`); with "
+                  "the cascade's output-error parameters it is "
+                  f"{fmt(base.get(f'{key}_output_error_parameters'))} (base) and "
+                  f"{fmt(bench[f'{key}_output_error_parameters'])} (extended)."]
     return lines
 
 
