@@ -74,6 +74,10 @@ def test_noise_table_recovers_the_bench_sensor_noise(preprocessed):
         NOISE_RMS["steering_torque_nm"], rel=0.2)
     text = (preprocessed / "preprocess.md").read_text()
     assert "| tg_sine | control | tie_rod_force_left_n |" in text
+    # the report shows the HTML rendering of the same table inline
+    html = (preprocessed / "preprocess.html").read_text()
+    assert html.count("<tr>") == len(table) + 1
+    assert "<td>tg_sine</td>\n<td>control</td>\n<td>tie_rod_force_left_n</td>" in html
     assert (preprocessed / "figures" / "filter.png").stat().st_size > 10_000
 
 

@@ -30,7 +30,7 @@ from mbst.fitting import (
     solve,
 )
 from mbst.metrics import correlation_row
-from mbst.outputs import atomic_output_dir, write_json
+from mbst.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.systems.model import ModelDefinition
 
 
@@ -327,7 +327,7 @@ def write_identify_outputs(result: IdentifyResult, out: Path, settings: Identify
                            figdir / "hysteresis.png")
     plots.residuals(shown, {"base": result.twins}, figdir / "residuals.png")
     extra = result.model.report(result, figdir) if result.model.report else []
-    (out / "identify.md").write_text(markdown_summary(result) + "".join(f"{x}\n" for x in extra))
+    write_markdown(out / "identify.md", markdown_summary(result) + "".join(f"{x}\n" for x in extra))
 
 
 def markdown_summary(result: IdentifyResult) -> str:

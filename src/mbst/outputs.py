@@ -58,6 +58,39 @@ def write_json(path: str | Path, obj: dict) -> Path:
     return Path(path)
 
 
+_HTML_PAGE = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>{title}</title>
+<style>
+body {{ font-family: system-ui, sans-serif; font-size: 14px; margin: 1.5em; color: #222; }}
+table {{ border-collapse: collapse; margin: 0.8em 0; }}
+th, td {{ border: 1px solid #ccc; padding: 3px 8px; text-align: left; }}
+th {{ background: #eef3f7; }}
+tr:nth-child(even) td {{ background: #fafafa; }}
+code {{ background: #f3f3f3; padding: 0 3px; }}
+</style></head><body>
+{body}
+</body></html>
+"""
+
+
+def write_markdown(path: str | Path, text: str) -> Path:
+    """A Markdown summary and its HTML rendering beside it (``.html``), both atomically.
+
+    The Snakemake report shows HTML results inline but offers Markdown only as a
+    download, so the tables an engineer reads first go into the report as HTML.
+    """
+    import markdown
+
+    path = Path(path)
+    with atomic_text(path) as fh:
+        fh.write(text)
+    first = next((ln.lstrip("# ").strip() for ln in text.splitlines() if ln.strip()), path.stem)
+    body = markdown.markdown(text, extensions=["tables", "fenced_code"])
+    with atomic_text(path.with_suffix(".html")) as fh:
+        fh.write(_HTML_PAGE.format(title=first.replace("`", ""), body=body))
+    return path
+
+
 @contextmanager
 def atomic_output_dir(out_dir: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling folder; on success it replaces ``out_dir`` whole."""

@@ -27,7 +27,7 @@ import pandas as pd
 
 from mbst.campaign import Campaign, write_campaign
 from mbst.fitting import PreparedTest, prepare_test
-from mbst.outputs import atomic_output_dir
+from mbst.outputs import atomic_output_dir, write_markdown
 from mbst.preprocess import exponential_filter, filtered_noise_gain
 
 # campaign.yaml key of a preprocessed campaign
@@ -103,7 +103,7 @@ def write_preprocessed(campaign: Campaign, out_dir: str | Path, tau_s: float,
             extra=extra,
         )
         table.to_csv(tmp / "noise.csv", index=False, float_format="%.6g")
-        (tmp / "preprocess.md").write_text(_markdown(campaign, tau_s, table), encoding="utf-8")
+        write_markdown(tmp / "preprocess.md", _markdown(campaign, tau_s, table))
         if figures:
             from mbst.plots import filter_effect
 
@@ -124,7 +124,9 @@ def _markdown(campaign: Campaign, tau_s: float, table: pd.DataFrame) -> str:
         "family says) and `model_input_rate`.",
         "",
         "Noise is the white sensor noise estimated from what a 0.1 s local cubic leaves out; "
-        "`signal/noise` is the filtered channel's spread over its filtered noise.",
+        "`signal/noise` is the filtered channel's spread over its filtered noise. On fast "
+        "tests the cubic also leaves out real fast dynamics, so the estimate reads high there; "
+        "the slow tests give the sensor's own noise.",
         "",
         "| test | role | channel | noise raw | noise filtered | signal std | signal/noise |",
         "|---|---|---|---|---|---|---|",

@@ -20,8 +20,9 @@ rule discover:
             subcategory="{campaign}",
             labels={"campaign": "{campaign}", "result": "control FIT per model family"},
         ),
-        summary=report(
-            "results/{campaign}/discover/discovery.md",
+        summary="results/{campaign}/discover/discovery.md",
+        summary_html=report(
+            "results/{campaign}/discover/discovery.html",
             caption="../report/discovery_md.rst",
             category="Discovery",
             subcategory="{campaign}",

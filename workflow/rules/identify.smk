@@ -25,8 +25,9 @@ rule identify:
             subcategory="{campaign}",
             labels={"campaign": "{campaign}", "result": "FIT table"},
         ),
-        summary=report(
-            "results/{campaign}/identify/identify.md",
+        summary="results/{campaign}/identify/identify.md",
+        summary_html=report(
+            "results/{campaign}/identify/identify.html",
             caption="../report/identify_md.rst",
             category="Identification",
             subcategory="{campaign}",

@@ -14,7 +14,19 @@ rule plan:
         campaign="results/plan/campaign.yaml",
         record="results/plan/plan.json",
         summary="results/plan/plan.md",
-        figures=directory("results/plan/figures"),
+        summary_html=report(
+            "results/plan/plan.html",
+            caption="../report/plan_md.rst",
+            category="Planning",
+            labels={"result": "plan"},
+        ),
+        figures=report(
+            directory("results/plan/figures"),
+            patterns=["{name}.png"],
+            caption="../report/plan_figures.rst",
+            category="Planning",
+            labels={"result": "figure: {name}"},
+        ),
     log:
         "logs/plan/plan.log",
     benchmark:

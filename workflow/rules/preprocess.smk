@@ -10,8 +10,9 @@ rule preprocess:
         campaign_inputs,
     output:
         campaign=directory("results/{campaign}/preprocess/campaign"),
-        noise=report(
-            "results/{campaign}/preprocess/preprocess.md",
+        noise="results/{campaign}/preprocess/preprocess.md",
+        noise_html=report(
+            "results/{campaign}/preprocess/preprocess.html",
             caption="../report/preprocess_md.rst",
             category="Preprocessing",
             subcategory="{campaign}",

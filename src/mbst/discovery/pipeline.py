@@ -39,7 +39,7 @@ from mbst.discovery.structure import (
 from mbst.fitting import PreparedTest, _twins_batch, channel_scales, solve
 from mbst.identify import IdentifyResult, IdentifySettings, correlate, run_cascade
 from mbst.metrics import fit_percent
-from mbst.outputs import atomic_output_dir, write_json
+from mbst.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.systems.model import ModelDefinition
 
 FORMAT = "mbst-discovery/1"
@@ -597,7 +597,7 @@ def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
     figdir = out / "figures"
     figdir.mkdir(parents=True, exist_ok=True)
     figures.write_all(result, figdir)
-    (out / "discovery.md").write_text(markdown_summary(result))
+    write_markdown(out / "discovery.md", markdown_summary(result))
 
 
 def markdown_summary(result: DiscoveryResult) -> str:

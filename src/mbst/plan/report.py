@@ -10,7 +10,7 @@ import yaml
 
 from mbst.bench import KNOWN
 from mbst.campaign import FORMAT as CAMPAIGN_FORMAT
-from mbst.outputs import atomic_text, write_json
+from mbst.outputs import atomic_text, write_json, write_markdown
 from mbst.plan.config import PlanConfig
 from mbst.plan.information import (
     fisher,
@@ -264,5 +264,4 @@ def write_all(out: Path, cfg: PlanConfig, res) -> None:
     res.record["frequency_comparison_gap_sigma"] = figures.frequency_comparison(
         cfg, figdir / "frequency_comparison.png")
     write_json(out / "plan.json", res.record)
-    with atomic_text(out / "plan.md") as fh:
-        fh.write(markdown(cfg, res))
+    write_markdown(out / "plan.md", markdown(cfg, res))
