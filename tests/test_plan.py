@@ -155,9 +155,10 @@ def test_greedy_plan_identifies_every_unknown_where_the_naive_does_not(cfg, sens
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "issue 6 open point: the linearised information over-rates fast inputs and impacts for "
-    "column/rack/motor Coulomb friction; on the bench the slow-sine naive campaign separates "
-    "them better, so the planned campaign does not yet win (docs/plan.md, Limits)"))
+    "issue 6 open point: the linearised information over-rates what impacts add for the "
+    "worm-gear stiffness and the motor/rack Coulomb split; on the bench the slow-sine naive "
+    "campaign still identifies them better, so the planned campaign does not yet win "
+    "(docs/plan.md, Limits)"))
 def test_planning_pays_on_the_bench(planned):
     s = planned.proof.summary
     assert s["rms_log_error"]["planned"] < s["rms_log_error"]["naive"], s
