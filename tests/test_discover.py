@@ -125,6 +125,27 @@ def test_extension_restores_control_fit_to_the_true_model(backlash):
     assert result.gain["control_fit_percent_mean"] > 0
 
 
+def test_motor_angle_is_used_when_the_campaign_logs_it(tmp_path_factory):
+    """The optional motor angle enters every refit and the comparison: the gear gap shows
+    there directly, as the motor lagging the column by the width at each reversal."""
+    from mbst.bench import DEFAULT_SENSORS
+
+    out = tmp_path_factory.mktemp("disc_motor")
+    recipe = BenchRecipe(effects=["backlash:worm_gear"], seed=1, plan=compact_plan(),
+                         sensors=DEFAULT_SENSORS + ("motor_angle_rad",))
+    camp = read_campaign(run_bench(out, recipe))
+    truth = json.loads((out / "truth.json").read_text())
+    result = discover(camp, DiscoverSettings(**SETTINGS))
+    _assert_first_finding(result, "backlash:worm_gear", truth)
+    stage = next(c for c in result.rounds[0]["candidates"] if c["key"] == "backlash:worm_gear")
+    assert stage["stage"] == "free_tie_rods"
+    wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
+                                         values="fit_percent")
+    motor = wide.xs("motor_angle_rad", level="channel")
+    assert (motor["base"] < motor["true"] - 1).all(), motor
+    assert (motor["extended"] > motor["true"] - 0.5).all(), motor
+
+
 def test_discovery_record_follows_the_spec(backlash):
     _, _, result = backlash
     rec = json.loads(json.dumps(discovery_record(result)))
