@@ -20,6 +20,8 @@ from mbst.preprocess import exponential_filter, filtered_noise_gain, white_noise
 from mbst.systems.model import ModelDefinition
 
 INPUT_WINDOW_S = 0.1
+# campaign.yaml key that marks a campaign written by `mbst preprocess` (already filtered)
+PREPROCESSED_KEY = "preprocessed"
 
 
 @dataclass
@@ -66,7 +68,7 @@ def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
     causal exponential filter as the measured ones, so both sides carry the
     same phase lag (eps-model.md, "Preprocessing").
     """
-    done = campaign.extra.get("preprocessed")
+    done = campaign.extra.get(PREPROCESSED_KEY)
     if done and tau_s > 0:
         # filtering twice would compare a twice-filtered measurement with a once-filtered twin
         raise CampaignError(

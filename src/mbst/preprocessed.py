@@ -19,19 +19,15 @@ with their own tools:
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from mbst.campaign import Campaign, write_campaign
-from mbst.fitting import PreparedTest, prepare_test
+from mbst.fitting import PREPROCESSED_KEY, PreparedTest, prepare_test
 from mbst.outputs import atomic_output_dir, write_markdown
 from mbst.preprocess import exponential_filter, filtered_noise_gain
-
-# campaign.yaml key of a preprocessed campaign
-PREPROCESSED_KEY = "preprocessed"
 
 
 def preprocessed_frame(campaign: Campaign, pt: PreparedTest) -> pd.DataFrame:
@@ -99,7 +95,7 @@ def write_preprocessed(campaign: Campaign, out_dir: str | Path, tau_s: float,
                                    "from": str(campaign.path)}
         write_campaign(
             tmp / "campaign", name=campaign.name, system=campaign.system, known=campaign.known,
-            tests=[(dataclasses.replace(pt.spec), preprocessed_frame(campaign, pt)) for pt in tests],
+            tests=[(pt.spec, preprocessed_frame(campaign, pt)) for pt in tests],
             extra=extra,
         )
         table.to_csv(tmp / "noise.csv", index=False, float_format="%.6g")
