@@ -7,6 +7,7 @@ gear and rack, three scenarios, three short inputs, two sweep points.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import numpy as np
@@ -86,6 +87,15 @@ def sens(cfg):
 
 
 @pytest.fixture(scope="module")
+def encoder_planned():
+    # the steering angle read by an encoder (0.005°) instead of the potentiometer (0.05°):
+    # the input error is small and every unknown of the compact config can be identified
+    doc = copy.deepcopy(COMPACT)
+    doc["sensors"][0]["noise"] = 8.7e-5
+    return plan_campaign(parse_plan(doc, "encoder.yaml"), proof=False)
+
+
+@pytest.fixture(scope="module")
 def planned(cfg, tmp_path_factory):
     return plan_campaign(cfg, proof=True, proof_dir=tmp_path_factory.mktemp("proof"))
 
@@ -138,8 +148,9 @@ def test_fisher_information_flags_the_blind_sets(cfg, sens):
     assert idf.condition_number > 1e6  # blind directions make it ill-conditioned
 
 
-def test_greedy_plan_identifies_every_unknown_where_the_naive_does_not(cfg, sens, planned):
-    res = planned
+def test_greedy_plan_identifies_every_unknown_where_the_naive_does_not(encoder_planned):
+    res = encoder_planned
+    cfg, sens = parse_plan(copy.deepcopy(COMPACT), "compact.yaml"), res.sensitivity
     assert res.planned_id.identifiable.all(), res.record["planned_identifiability"]
     assert not res.naive_id.identifiable.all()
     pl, nv = res.record["planned"], res.record["naive"]
@@ -154,16 +165,41 @@ def test_greedy_plan_identifies_every_unknown_where_the_naive_does_not(cfg, sens
     assert not set(res.plan.controls) & set(res.plan.tests)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 6 open point: the linearised information over-rates what impacts add for the "
-    "worm-gear stiffness and the motor/rack Coulomb split; on the bench the slow-sine naive "
-    "campaign still identifies them better, so the planned campaign does not yet win "
-    "(docs/plan.md, Limits)"))
-def test_planning_pays_on_the_bench(planned):
+def test_angle_noise_counts_as_an_input_error(cfg, planned, encoder_planned):
+    # the twin is driven by the smoothed noisy angle; that error biases the motor/rack
+    # friction split (motor Coulomb +98 % from the angle noise alone, linearised, on the
+    # example), and the planner must predict it: without the term it promised 9 %
+    res = planned
+    motor = cfg.unknown_names.index("motor.coulomb_nm")
+    with_term = res.planned_id.worst_relative_std[motor]
+    no_term = dataclasses.replace(res.sensitivity, input_error=None)
+    f = fisher(no_term, res.plan.logged, res.plan.counts(len(no_term.cells)), RATE)
+    without = identifiability(f, cfg.target_relative_std, prior_information(cfg))
+    assert with_term > 0.3 > 2.0 * without.worst_relative_std[motor], (with_term, without)
+    assert not res.planned_id.identifiable.all()
+    # a ten times better angle sensor makes the same parameter identifiable
+    enc = encoder_planned.planned_id.worst_relative_std[motor]
+    assert enc < cfg.target_relative_std < with_term
+
+
+def test_planning_pays_in_control_fit_on_the_bench(planned):
+    # the shared controls, on the channels both campaigns logged that carry signal; before
+    # the proof restarted stages stuck far above their noise the planned model scored 93.5 %
     s = planned.proof.summary
-    assert s["rms_log_error"]["planned"] < s["rms_log_error"]["naive"], s
-    assert s["mean_control_fit_percent"]["planned"] > s["mean_control_fit_percent"]["naive"], s
+    fit = s["mean_control_fit_percent"]
+    assert fit["planned"] > fit["naive"] + 1.0, s
+    assert fit["planned"] > fit["truth"] - 1.0, s
+    assert "motor_current_a" not in s["compared_channels"]
+
+
+def test_planning_pays_on_the_parameters_it_promises(planned):
+    s = planned.proof.summary
+    assert s["promised"], s
+    err = s["rms_log_error_promised"]
+    assert err["planned"] < 0.5 * err["naive"], s
     assert s["planning_pays"]
+    # the bench confirms the prediction within a factor of two on every promised unknown
+    assert set(s["promised"]) <= set(s["confirmed_within_factor_two"]), s
 
 
 def test_effects_report_look_alike_and_cheapest_separation(planned):

@@ -10,6 +10,7 @@ residuals and a batched finite-difference Jacobian to
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -147,6 +148,7 @@ class FitProblem:
         upper: dict[str, float] | None = None,
         decimate: int = 1,
         prior_weight: float | None = None,
+        prior: dict[str, tuple[float, float]] | None = None,
     ) -> None:
         self.tests = tests
         self.channels = channels
@@ -172,6 +174,15 @@ class FitProblem:
             prior_weight = self.noise_floor()
         self.prior_w = np.array([0.0 if n.startswith("offset.") else prior_weight
                                  for n in self.free])
+        # an explicit prior (value, std of ln θ), e.g. a plan's ranges: Gaussian on the
+        # scale of the data's noise, so it yields to data in proportion to their information
+        floor = self.noise_floor() if prior else 0.0
+        for j, n in enumerate(self.free):
+            if prior and n in prior:
+                value, std_log = prior[n]
+                self.u_prior[j] = math.log(value) if self.log[j] else value / self.typ[j]
+                std_u = std_log if self.log[j] else abs(value) * std_log / self.typ[j]
+                self.prior_w[j] = floor / max(std_u, 1e-12)
 
     # coordinates ------------------------------------------------------------------
     def _to_u(self, theta: np.ndarray) -> np.ndarray:
@@ -256,6 +267,10 @@ class FitProblem:
         r = self.residuals(u)
         return 0.5 * float(r @ r)
 
+    def noise_cost(self) -> float:
+        """The cost that the sensor noise alone leaves at the true parameters (expected)."""
+        return 0.5 * sum(self.block_sizes()) * self.noise_floor() ** 2
+
 
 @dataclass
 class FitResult:
@@ -271,15 +286,27 @@ class FitResult:
     starts: list[float]
 
 
+STALE_STARTS = 3
+
+
 def solve(
     problem: FitProblem,
     starts: list[np.ndarray],
     max_nfev: int = 60,
+    more_starts: Callable[[], np.ndarray] | None = None,
+    max_more: int = 0,
+    good_cost: float = 0.0,
 ) -> FitResult:
-    """Run least_squares from each start (parameter vectors); keep the best."""
+    """Run least_squares from each start (parameter vectors); keep the best.
+
+    With ``more_starts``, up to ``max_more`` further starts are drawn from it
+    while the best cost is still above ``good_cost``, until ``STALE_STARTS`` in a
+    row find nothing clearly better (a cost the model cannot go below).
+    """
     best = None
     costs = []
-    for p0 in starts:
+
+    def run(p0: np.ndarray):
         u0 = problem.u_of(p0)
         # keep strictly inside the bounds (trf needs interior starts)
         span = problem.ub - problem.lb
@@ -288,7 +315,18 @@ def solve(
                             bounds=(problem.lb, problem.ub), method="trf", x_scale="jac",
                             max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
         costs.append(float(res.cost))
+        return res
+
+    for p0 in starts:
+        res = run(p0)
         if best is None or res.cost < best.cost:
+            best = res
+    stale = 0  # further starts in a row that found no clearly better basin
+    while more_starts is not None and len(costs) < len(starts) + max_more and (
+            best.cost > good_cost) and stale < STALE_STARTS:
+        res = run(more_starts())
+        stale = 0 if res.cost < 0.9 * best.cost else stale + 1
+        if res.cost < best.cost:
             best = res
     return _summarise(problem, best, costs)
 

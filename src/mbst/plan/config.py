@@ -115,6 +115,10 @@ class PlanConfig:
     proof_seed: int
     proof_effects: list[str]
     proof_multistart: int = 2
+    proof_joint_refinement: bool = True
+    proof_range_prior: bool = True
+    # noisy-angle draws per cell for the input-reconstruction error (0: the input is exact)
+    input_draws: int = 4
 
     @property
     def unknown_names(self) -> list[str]:
@@ -304,14 +308,15 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
     sensors = _sensors(r, doc.get("sensors"))
     scenarios = _scenarios(r, doc.get("scenarios"))
     inputs = _inputs(r, doc.get("inputs"))
-    sweep = r.mapping(doc.get("sweep", {}), "sweep", ("points", "fd_step"))
+    sweep = r.mapping(doc.get("sweep", {}), "sweep", ("points", "fd_step", "input_draws"))
     sel = r.mapping(doc.get("selection", {}), "selection",
                     ("budget", "target_relative_std", "max_tests_per_scenario", "controls"))
     naive = r.mapping(doc.get("naive", {}), "naive", ("scenario", "input", "sensors"))
     eff = r.mapping(doc.get("effects", {}), "effects",
                     ("enabled", "default_sensors", "min_evidence", "min_unexplained", "only"))
     fig = r.mapping(doc.get("figures", {}), "figures", ("frequency_comparison",))
-    proof = r.mapping(doc.get("proof", {}), "proof", ("enabled", "seed", "effects", "multistart"))
+    proof = r.mapping(doc.get("proof", {}), "proof", ("enabled", "seed", "effects", "multistart",
+                                                          "joint_refinement", "range_prior"))
     scen_ids = [s.id for s in scenarios]
     input_ids = [i.id for i in inputs]
     sensor_names = [s.name for s in sensors]
@@ -351,7 +356,9 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
     bools = {}
     for key, obj, default in (("selection.controls", sel.get("controls"), True),
                               ("effects.enabled", eff.get("enabled"), True),
-                              ("proof.enabled", proof.get("enabled"), True)):
+                              ("proof.enabled", proof.get("enabled"), True),
+                              ("proof.joint_refinement", proof.get("joint_refinement"), True),
+                              ("proof.range_prior", proof.get("range_prior"), True)):
         v = default if obj is None else obj
         if not isinstance(v, bool):
             raise r.fail(key, "expected true or false")
@@ -370,6 +377,7 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
         unknowns=unknowns,
         sweep_points=r.integer(sweep.get("points", 4), "sweep.points", 1),
         fd_step=r.number(sweep.get("fd_step", 0.02), "sweep.fd_step", lo=1e-4, hi=0.5),
+        input_draws=r.integer(sweep.get("input_draws", 4), "sweep.input_draws", 0),
         sensors=sensors,
         scenarios=scenarios,
         inputs=inputs,
@@ -395,6 +403,8 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
         proof_seed=r.integer(proof.get("seed", 0), "proof.seed", 0),
         proof_effects=list(proof_effects),
         proof_multistart=r.integer(proof.get("multistart", 2), "proof.multistart", 1),
+        proof_joint_refinement=bools["proof.joint_refinement"],
+        proof_range_prior=bools["proof.range_prior"],
     )
 
 

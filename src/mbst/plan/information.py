@@ -7,6 +7,13 @@ campaign's logging rate). A sensor offset is one unknown per sensor for
 the whole campaign (eps-model.md), so it is eliminated per sensor over all
 tests together: Σ JᵀJ − (Σ J)(Σ J)ᵀ/n, the Schur complement of the offset.
 Coordinates are relative (ln θ): a standard error of 0.1 is 10 %.
+
+The identification drives its twin with the measured angle, smoothed: the
+angle's noise leaves a slow error on the input that no number of samples
+averages away within a test (errors in variables). Its effect on the
+estimate is propagated as a bias per test, δθ = F⁻¹·Σₙ Jᵀe, with e the twin's
+output error from noisy-angle draws (``Sensitivity.input_error``); tests are
+independent, so the covariance becomes F⁻¹ + F⁻¹·B·F⁻¹ with B = Σ_tests E[(ΣJᵀe)(ΣJᵀe)ᵀ].
 """
 
 from __future__ import annotations
@@ -63,15 +70,44 @@ def _sensor_mask(sens: Sensitivity, sensors) -> np.ndarray:
     return np.array([s in sensors for s in sens.sensors])
 
 
-def covariance(f: np.ndarray) -> np.ndarray:
-    """Inverse of the information (batched), with a tiny ridge for unseen directions."""
+def covariance(f: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of the information (batched), with a tiny ridge for unseen directions.
+
+    With ``b`` (the input-error term, same shape) the sandwich F⁻¹ + F⁻¹·B·F⁻¹.
+    """
     p = f.shape[-1]
-    return np.linalg.inv(f + RIDGE * np.eye(p))
+    cov = np.linalg.inv(f + RIDGE * np.eye(p))
+    if b is not None:
+        cov = cov + cov @ b @ cov
+    return cov
 
 
-def relative_std(f: np.ndarray) -> np.ndarray:
+def relative_std(f: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
     """Predicted relative standard errors (…, P) from information (…, P, P) in ln θ."""
-    return np.sqrt(np.maximum(np.diagonal(covariance(f), axis1=-2, axis2=-1), 0.0))
+    return np.sqrt(np.maximum(np.diagonal(covariance(f, b), axis1=-2, axis2=-1), 0.0))
+
+
+def input_error_per_test(sens: Sensitivity, sensors) -> np.ndarray | None:
+    """(K, C, P, P): E[(Σ Jᵀe)(Σ Jᵀe)ᵀ] of one test of each cell with these sensors.
+
+    Summed over the logged sensors inside a draw first: one angle error drives all
+    channels of a test at once. Campaign-rate sums are ``rate_factor`` × the
+    analysis-rate ones; the caller scales by its square.
+    """
+    if sens.input_error is None:
+        return None
+    mask = _sensor_mask(sens, sensors)[None, :] & logged_mask(sens)  # (C, S)
+    v = np.einsum("kcsmp,cs->kcmp", sens.input_error, mask.astype(float))
+    return np.einsum("kcmp,kcmq->kcpq", v, v) / max(v.shape[2], 1)
+
+
+def input_error_term(sens: Sensitivity, sensors, counts: np.ndarray,
+                     rate_factor: float) -> np.ndarray | None:
+    """(K, P, P): B of a plan (its sensors, its tests with multiplicity ``counts``)."""
+    q = input_error_per_test(sens, sensors)
+    if q is None:
+        return None
+    return rate_factor**2 * np.einsum("c,kcpq->kpq", np.asarray(counts, float), q)
 
 
 def bits_gained(f: np.ndarray, prior_info: np.ndarray) -> np.ndarray:
@@ -101,9 +137,13 @@ class Identifiability:
         return float(c.max()) if c.size else 0.0
 
 
-def identifiability(f: np.ndarray, target: float, prior_info: np.ndarray) -> Identifiability:
-    """Standard errors, correlations and conditioning of information ``f`` (K, P, P)."""
-    cov = covariance(f)
+def identifiability(f: np.ndarray, target: float, prior_info: np.ndarray,
+                    b: np.ndarray | None = None) -> Identifiability:
+    """Standard errors, correlations and conditioning of information ``f`` (K, P, P).
+
+    ``b``: the input-error term (``input_error_term``), if counted.
+    """
+    cov = covariance(f, b)
     rel = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
     c0 = cov[0]
     d = np.sqrt(np.maximum(np.diag(c0), 1e-300))

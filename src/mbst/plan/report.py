@@ -15,6 +15,7 @@ from mbst.plan.config import PlanConfig
 from mbst.plan.information import (
     fisher,
     identifiability,
+    input_error_term,
     prior_information,
 )
 from mbst.plan.proof import campaign_tests
@@ -59,7 +60,8 @@ def sensitivity_table(sens: Sensitivity) -> pd.DataFrame:
 
 def _bits(cfg, sens, sensors, counts, rf) -> tuple[float, int]:
     f = fisher(sens, sensors, counts, rf)
-    idf = identifiability(f, cfg.target_relative_std, prior_information(cfg))
+    idf = identifiability(f, cfg.target_relative_std, prior_information(cfg),
+                          input_error_term(sens, sensors, counts, rf))
     return idf.bits, int(idf.identifiable.sum())
 
 
@@ -208,14 +210,22 @@ def markdown(cfg: PlanConfig, res) -> str:
                   f" | {s['median_relative_error']['naive']:.3g} |",
                   f"| largest relative parameter error | {s['max_relative_error']['planned']:.3g} | "
                   f"{s['max_relative_error']['naive']:.3g} |",
-                  f"| rms log error | {s['rms_log_error']['planned']:.3g} | "
+                  f"| rms log error, all unknowns | {s['rms_log_error']['planned']:.3g} | "
                   f"{s['rms_log_error']['naive']:.3g} |",
-                  f"| mean FIT % on all controls | {s['mean_control_fit_percent']['planned']:.2f} | "
+                  f"| rms log error, the {len(s['promised'])} the plan promises (σ ≤ target) | "
+                  f"{s['rms_log_error_promised']['planned']:.3g} | "
+                  f"{s['rms_log_error_promised']['naive']:.3g} |",
+                  f"| mean FIT % on all controls (signal channels both logged) | "
+                  f"{s['mean_control_fit_percent']['planned']:.2f} | "
                   f"{s['mean_control_fit_percent']['naive']:.2f} |",
                   f"| identification wall time s | {s['identification_wall_s']['planned']:.1f} | "
                   f"{s['identification_wall_s']['naive']:.1f} |", "",
-                  f"True model on the same controls: {s['mean_control_fit_percent']['truth']:.2f} %."
-                  f" Planning pays: **{'yes' if s['planning_pays'] else 'no'}** "
+                  f"True model on the same controls: {s['mean_control_fit_percent']['truth']:.2f} %"
+                  f" (channels {', '.join(f'`{c}`' for c in s['compared_channels'])})."
+                  f" Within twice the predicted σ on the bench: "
+                  f"{len(s.get('confirmed_within_factor_two', []))} of {len(cfg.unknowns)} "
+                  f"unknowns. Planning pays (promised parameters and control FIT): "
+                  f"**{'yes' if s['planning_pays'] else 'no'}** "
                   "(proof_errors.csv, proof_fit.csv).", ""]
     lines += ["## Files", "",
               "- `campaign.yaml`: the planned campaign (skeleton: no data yet)",

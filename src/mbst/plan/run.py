@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -59,9 +60,13 @@ class PlanResult:
         if self.proof is not None:
             s = self.proof.summary
             lines.append(f"  bench     rms log error planned {s['rms_log_error']['planned']:.3g} "
-                         f"vs naive {s['rms_log_error']['naive']:.3g}; mean control FIT "
+                         f"vs naive {s['rms_log_error']['naive']:.3g} (on the "
+                         f"{len(s['promised'])} promised: "
+                         f"{s['rms_log_error_promised']['planned']:.3g} vs "
+                         f"{s['rms_log_error_promised']['naive']:.3g}); mean control FIT "
                          f"{s['mean_control_fit_percent']['planned']:.2f} % vs "
-                         f"{s['mean_control_fit_percent']['naive']:.2f} %")
+                         f"{s['mean_control_fit_percent']['naive']:.2f} %; planning pays: "
+                         f"{'yes' if s['planning_pays'] else 'no'}")
         for n in self.notes:
             lines.append(f"  note: {n}")
         return "\n".join(lines)
@@ -108,15 +113,13 @@ def plan_campaign(cfg: PlanConfig, progress: bool = False, proof: bool | None = 
     res = PlanResult(sens, plan, steps, notes, naive, planned_id, naive_id, effects)
     res.rankings = ranking_tables(cfg, sens, plan, rf)
     if cfg.proof_enabled if proof is None else proof:
-        if proof_dir is None:
-            with tempfile.TemporaryDirectory(prefix="mbst-plan-proof-") as tmp:
-                res.proof = run_proof(cfg, sens, plan, naive, Path(tmp),
-                                      {"planned": planned_id.relative_std[0],
-                                       "naive": naive_id.relative_std[0]}, progress)
-        else:
-            res.proof = run_proof(cfg, sens, plan, naive, Path(proof_dir),
-                                  {"planned": planned_id.relative_std[0],
-                                   "naive": naive_id.relative_std[0]}, progress)
+        predicted = {"planned": planned_id.relative_std[0], "naive": naive_id.relative_std[0]}
+        promised = [n for n, ok in zip(cfg.unknown_names, planned_id.identifiable, strict=True)
+                    if ok]
+        with (tempfile.TemporaryDirectory(prefix="mbst-plan-proof-") if proof_dir is None
+              else contextlib.nullcontext(proof_dir)) as where:
+            res.proof = run_proof(cfg, sens, plan, naive, Path(where), predicted, progress,
+                                  promised)
     t3 = time.perf_counter()
     res.record = {
         "format": "mbst-plan-result/1",

@@ -28,12 +28,15 @@ from mbst.plan.information import (
     RIDGE,
     bits_gained,
     fisher,
+    input_error_per_test,
+    input_error_term,
     logged_mask,
     offset_eliminated,
     prior_information,
     relative_std,
 )
 from mbst.plan.sensitivity import Sensitivity
+from mbst.plan.sensors import SENSORS
 from mbst.systems import get_system
 from mbst.systems.eps_channels import SYSTEM_NAME
 
@@ -115,6 +118,9 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
     prior = prior_information(cfg)
     mandatory = np.array([cfg.sensor(s).mandatory for s in sens.sensors])
     s_cost = np.array([cfg.sensor(s).cost for s in sens.sensors])
+    # mbst identify fits the campaign-format channels only: a plan that paid for another
+    # sensor would count information no identification uses (they are still ranked)
+    fitted = np.array([SENSORS[s].campaign_channel for s in sens.sensors])
     logged = logged_mask(sens)  # (C, S)
     gram = sens.gram * rate_factor
     colsum = sens.colsum * rate_factor
@@ -136,12 +142,20 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
     def info(eff_sel: np.ndarray) -> np.ndarray:
         return eff_sel.sum(axis=-3)  # sum over sensors (..., S, P, P) → (..., P, P)
 
-    def state_eval(ch, aa, bb, nn):
+    def per_test_error(ch: np.ndarray):
+        q = input_error_per_test(sens, ch)
+        return None if q is None else rate_factor**2 * q  # (K, C, P, P)
+
+    def total_error(q, cnt: np.ndarray):
+        return None if q is None else np.einsum("c,kcpq->kpq", cnt.astype(float), q)
+
+    def state_eval(ch, aa, bb, nn, cnt):
         eff = offset_eliminated(aa, bb, nn) * ch[:, None, None]
         f = info(eff)
-        return f, relative_std(f)
+        q = per_test_error(ch)
+        return f, relative_std(f, total_error(q, cnt)), q
 
-    f_cur, rel_cur = state_eval(chosen, a, b, n)
+    f_cur, rel_cur, q_cur = state_eval(chosen, a, b, n, counts)
     cost_cur = cost_of(chosen, counts)
     steps.append(Step("start: " + ", ".join(s for s, m in zip(sens.sensors, mandatory,
                                                                 strict=True) if m),
@@ -156,29 +170,37 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
         n_new = n[None] + nsamp
         eff_new = offset_eliminated(a_new, b_new, n_new[:, None, :])
         eff_cur = offset_eliminated(a, b, n)
-        moves, fs, dcost = [], [], []
+        moves, fs, dcost, bs = [], [], [], []
+        b_cur = total_error(q_cur, counts)
+        q_with = {s: per_test_error(chosen | (np.arange(ss) == s))
+                  for s in np.flatnonzero(~chosen & fitted)}
         for c in range(cc):
             sid = sens.cells[c].scenario_id
-            if counts[c] or sum(counts[k] for k in range(cc)
-                                if sens.cells[k].scenario_id == sid) >= per_scen[sid]:
+            # a repeat is a candidate too: a fresh draw of the angle noise averages the
+            # input error that one test cannot (information and that error both add up)
+            if sum(counts[k] for k in range(cc)
+                   if sens.cells[k].scenario_id == sid) >= per_scen[sid]:
                 continue
             cnt = counts.copy()
-            cnt[c] = 1
+            cnt[c] += 1
             base_cost = cost_of(chosen, cnt)
             f_t = info(eff_new[c] * chosen[None, :, None, None])
             moves.append(("test", c, None))
             fs.append(f_t)
             dcost.append(base_cost - cost_cur)
-            for s in np.flatnonzero(~chosen):
+            bs.append(None if q_cur is None else b_cur + q_cur[:, c])
+            for s in np.flatnonzero(~chosen & fitted):
                 if not logged[c, s]:
                     continue
                 moves.append(("pair", c, s))
                 fs.append(f_t + eff_new[c][:, s])
                 dcost.append(base_cost + s_cost[s] - cost_cur)
-        for s in np.flatnonzero(~chosen):
+                bs.append(total_error(q_with[s], cnt))
+        for s in np.flatnonzero(~chosen & fitted):
             moves.append(("sensor", None, s))
             fs.append(f_cur + eff_cur[:, s])
             dcost.append(s_cost[s])
+            bs.append(total_error(q_with[s], counts))
         if not moves:
             break
         dcost = np.array(dcost)
@@ -186,7 +208,7 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
         if not feasible.any():
             notes.append(f"budget {cfg.budget:g} reached at cost {cost_cur:g}")
             break
-        rel_all = relative_std(np.stack(fs))  # (M, K, P)
+        rel_all = relative_std(np.stack(fs), None if q_cur is None else np.stack(bs))
         gain = j_cur - _objective(rel_all, target)
         score = np.where(feasible, gain / np.maximum(dcost, 1e-6), -np.inf)
         best = int(np.argmax(score))
@@ -203,7 +225,7 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
             counts[c] += 1
             a, b, n = a + gram[:, c], b + colsum[:, c], n + nsamp[c]
             label.append(f"+test {sens.cells[c].label}")
-        f_cur, rel_cur = state_eval(chosen, a, b, n)
+        f_cur, rel_cur, q_cur = state_eval(chosen, a, b, n, counts)
         cost_cur = cost_of(chosen, counts)
         steps.append(Step(" ".join(label), cost_cur, float(np.mean(bits_gained(f_cur, prior))),
                           float(rel_cur.max()), int((rel_cur.max(axis=0) <= target).sum())))
@@ -221,7 +243,8 @@ def _prune(cfg, sens, chosen, counts, mandatory, rate_factor, steps, prior):
 
     def ok(ch, cnt) -> bool:
         f = fisher(sens, ch, cnt, rate_factor)
-        return bool(relative_std(f).max() <= target)
+        return bool(relative_std(f, input_error_term(sens, ch, cnt, rate_factor)).max()
+                    <= target)
 
     items = [("test", c, cfg.input(sens.cells[c].input_id).cost) for c in np.flatnonzero(counts)]
     items += [("sensor", s, cfg.sensor(sens.sensors[s]).cost)
@@ -236,7 +259,7 @@ def _prune(cfg, sens, chosen, counts, mandatory, rate_factor, steps, prior):
             chosen, counts = ch, cnt
             name = sens.cells[i].label if kind == "test" else sens.sensors[i]
             f = fisher(sens, chosen, counts, rate_factor)
-            rel = relative_std(f)
+            rel = relative_std(f, input_error_term(sens, chosen, counts, rate_factor))
             cost = plan_cost(cfg, sens, [s for s, on in zip(sens.sensors, chosen, strict=True)
                                          if on],
                              {c: int(v) for c, v in enumerate(counts) if v})["identification"]
@@ -320,9 +343,11 @@ def evaluate(cfg: PlanConfig, sens: Sensitivity, plan: Plan, rate_factor: float,
     """Identifiability of a plan (with the format-required channels when ``logged``)."""
     from mbst.plan.information import identifiability
 
-    f = fisher(sens, plan.logged if logged else plan.sensors,
-               plan.counts(len(sens.cells)), rate_factor)
-    return f, identifiability(f, cfg.target_relative_std, prior_information(cfg))
+    sensors = plan.logged if logged else plan.sensors
+    counts = plan.counts(len(sens.cells))
+    f = fisher(sens, sensors, counts, rate_factor)
+    return f, identifiability(f, cfg.target_relative_std, prior_information(cfg),
+                              input_error_term(sens, sensors, counts, rate_factor))
 
 
 __all__ = ["Plan", "Step", "add_controls", "complete_for_format", "evaluate", "greedy",

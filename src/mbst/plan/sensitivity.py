@@ -25,14 +25,17 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+import pandas as pd
 from tqdm import tqdm
 
 from mbst.plan.config import PlanConfig
 from mbst.plan.inputs import profile, test_input
 from mbst.plan.sensors import INPUT_SENSOR, sensor_signals
-from mbst.systems import eps
+from mbst.systems import eps, eps_model
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, EffectSpec
+
+_COL_SWITCH = PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +75,9 @@ class Sensitivity:
     effects: list[str]  # catalogue keys
     effect_gram: np.ndarray  # (C, S, P+E, P+E) per-test centred Gram of [J(centre), d_effect]
     sigma: np.ndarray  # (C, S) noise used: sensor noise ⊕ model-error share of the swing
+    # (K, C, S, M, P) Σₙ J·e over the samples of a test, e the output error of the twin that
+    # the identification drives with the smoothed noisy angle (M draws, noise units)
+    input_error: np.ndarray | None = None
     nominal: dict[str, dict[str, np.ndarray]] = field(repr=False, default_factory=dict)
     n_simulations: int = 0
     wall_s: float = 0.0
@@ -135,6 +141,38 @@ def _signals(cell: Cell, raw: np.ndarray, ps: np.ndarray, ang: np.ndarray,
         for s, name in enumerate(sensors):
             out[r, s] = sig[name] / noise[s]
     return out
+
+
+def _input_error(cfg: PlanConfig, cell: Cell, p: np.ndarray, n_sub: int, n: int,
+                 angle_noise: float, sensors: list[str], sig_eff: np.ndarray,
+                 rng: np.random.Generator) -> np.ndarray:
+    """(M, S, N) noise-normalised signals of the twin driven as the identification drives it.
+
+    The rig's angle is logged at the campaign rate with the angle sensor's noise,
+    then smoothed by the model's own input preparation (window, rate, standstill)
+    and the column switch widened by the rate noise left (``eps_model``), exactly
+    as ``mbst identify`` builds its twin; the result is taken at the analysis rate.
+    """
+    t_f, ang_f = profile(cell.input, cfg.sample_rate_hz)
+    dt_f = float(t_f[1] - t_f[0])
+    step = max(int(round(cfg.sample_rate_hz / cfg.analysis_rate_hz)), 1)
+    dt = dt_f * step
+    out = np.empty((cfg.input_draws, len(sensors), n))
+    for m in range(cfg.input_draws):
+        noisy = ang_f + angle_noise * rng.standard_normal(len(ang_f))
+        ang, rate, extra = eps_model.prepare_inputs(pd.DataFrame({INPUT_SENSOR: noisy}), dt_f,
+                                                    None)
+        ang, rate = _fit_length(ang[::step], n), _fit_length(rate[::step], n)
+        q = p.copy()
+        q[_COL_SWITCH] = eps_model.effective_column_switch(
+            q[_COL_SWITCH], float(extra["rate_noise_rad_per_s"]))
+        raw = _run_one(cell, ang, rate, dt, q, n_sub)
+        out[m] = _signals(cell, raw[None], q[None], ang, sensors, sig_eff)[0]
+    return out
+
+
+def _fit_length(x: np.ndarray, n: int) -> np.ndarray:
+    return x[:n] if len(x) >= n else np.concatenate([x, np.full(n - len(x), x[-1])])
 
 
 def effect_list(cfg: PlanConfig) -> list[EffectSpec]:
@@ -201,6 +239,9 @@ def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
     effect_gram = np.zeros((cc, ss, pp + ee, pp + ee))
     nominal: dict[str, dict[str, np.ndarray]] = {}
     sigma = np.zeros((cc, ss))
+    draws = cfg.input_draws
+    input_error = np.zeros((kk, cc, ss, draws, pp))
+    angle_noise = float(noise[sensors.index(INPUT_SENSOR)])
     ones = np.ones(ss)
     n_sims = 0
     pool = ThreadPoolExecutor(max_workers=max(1, numba.get_num_threads()))
@@ -224,6 +265,10 @@ def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
         sig_eff[sensors.index(INPUT_SENSOR)] = noise[sensors.index(INPUT_SENSOR)]
         sigma[c] = sig_eff
         y /= sig_eff[None, :, None]
+        err = (_input_error(cfg, cell, vecs[0], n_sub, len(t), angle_noise, sensors, sig_eff,
+                            np.random.default_rng([cfg.seed, 11, c])) - y[0][None]
+               if draws else None)
+        n_sims += draws
         j0 = None
         for k in range(kk):
             b = k * (2 * pp + 1)
@@ -233,6 +278,8 @@ def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
             gram[k, c] = np.einsum("snp,snq->spq", jac, jac)
             colsum[k, c] = jac.sum(axis=1)
             rms[k, c] = np.sqrt(np.mean(jac**2, axis=1))
+            if err is not None:
+                input_error[k, c] = np.einsum("snp,msn->smp", jac, err)
             if k == 0:
                 j0 = jac
         sw = y[n_sweep + 1:: 2] - y[n_sweep:: 2]  # (P, S, N): high − low
@@ -262,4 +309,5 @@ def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
         gram=gram, colsum=colsum, n_samples=n_samples, rms=rms, swing=swing,
         effects=[e.key for e in effects], effect_gram=effect_gram, sigma=sigma, nominal=nominal,
         n_simulations=n_sims, wall_s=time.perf_counter() - t0,
+        input_error=input_error if draws else None,
     )
