@@ -86,13 +86,17 @@ def sens(cfg):
     return analyse(cfg)
 
 
-@pytest.fixture(scope="module")
-def encoder_planned():
+def _encoder_cfg():
     # the steering angle read by an encoder (0.005°) instead of the potentiometer (0.05°):
     # the input error is small and every unknown of the compact config can be identified
     doc = copy.deepcopy(COMPACT)
     doc["sensors"][0]["noise"] = 8.7e-5
-    return plan_campaign(parse_plan(doc, "encoder.yaml"), proof=False)
+    return parse_plan(doc, "encoder.yaml")
+
+
+@pytest.fixture(scope="module")
+def encoder_planned():
+    return plan_campaign(_encoder_cfg(), proof=False)
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +154,7 @@ def test_fisher_information_flags_the_blind_sets(cfg, sens):
 
 def test_greedy_plan_identifies_every_unknown_where_the_naive_does_not(encoder_planned):
     res = encoder_planned
-    cfg, sens = parse_plan(copy.deepcopy(COMPACT), "compact.yaml"), res.sensitivity
+    cfg, sens = _encoder_cfg(), res.sensitivity
     assert res.planned_id.identifiable.all(), res.record["planned_identifiability"]
     assert not res.naive_id.identifiable.all()
     pl, nv = res.record["planned"], res.record["naive"]

@@ -125,8 +125,8 @@ def _cascade(cfg: PlanConfig, camp, p_true: np.ndarray, seed: int) -> _Identifie
         p[PARAM_INDEX[u.name]] = u.nominal
     for n in EPS_MODEL.offset_channels:
         p[PARAM_INDEX[n]] = 0.0
-    # the plan's information is joint over all its tests: the proof refits jointly at the end
-    # the ranges are what the planner knew before the campaign (its bits count from them)
+    # the ranges are what the planner knew before the campaign (its bits count from them);
+    # its information is joint over all tests, hence the joint refit after the stages
     prior = ({u.name: (u.nominal, u.prior_std_log) for u in cfg.unknowns}
              if cfg.proof_range_prior else None)
     settings = IdentifySettings(tau_s=TAU_S, seed=seed, multistart=cfg.proof_multistart,
@@ -146,6 +146,11 @@ def _identify(cfg: PlanConfig, sens: Sensitivity, plan: Plan, p_true: np.ndarray
                               extra={"generated_by": "mbst plan (proof)", "seed": seed},
                               overwrite=True)
     return _cascade(cfg, read_campaign(camp_dir), p_true, seed)
+
+
+def _rms_log_error(errors: pd.DataFrame, label: str) -> float:
+    return float(np.sqrt(np.mean(np.log(
+        np.maximum(errors[label].abs(), 1e-300) / errors["truth"].abs()) ** 2)))
 
 
 def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, folder: Path,
@@ -213,9 +218,7 @@ def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, fo
                                   for lab in results},
         "max_relative_error": {lab: float(errors[f"{lab}_relative_error"].max())
                                for lab in results},
-        "rms_log_error": {lab: float(np.sqrt(np.mean(np.log(
-            np.maximum(errors[lab].abs(), 1e-300) / errors["truth"].abs()) ** 2)))
-            for lab in results},
+        "rms_log_error": {lab: _rms_log_error(errors, lab) for lab in results},
         "mean_control_fit_percent": {lab: float(shared[f"{lab}_fit_percent"].mean())
                                      for lab in (*results, "truth")},
         "compared_channels": sorted(set(shared["channel"])),
@@ -228,9 +231,7 @@ def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, fo
     kept = errors["parameter"].isin(promised)
     summary["promised"] = promised
     summary["rms_log_error_promised"] = {
-        lab: float(np.sqrt(np.mean(np.log(np.maximum(errors.loc[kept, lab].abs(), 1e-300)
-                                          / errors.loc[kept, "truth"].abs()) ** 2)))
-        if kept.any() else 0.0 for lab in results}
+        lab: _rms_log_error(errors[kept], lab) if kept.any() else 0.0 for lab in results}
     if predicted is not None:
         # the check of the prediction: realised error within twice the predicted σ
         ok = errors["planned_relative_error"] <= 2.0 * errors["planned_predicted_relative_std"]

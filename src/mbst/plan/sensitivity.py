@@ -35,8 +35,6 @@ from mbst.systems import eps, eps_model
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, EffectSpec
 
-_COL_SWITCH = PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]
-
 
 @dataclass(frozen=True)
 class Cell:
@@ -163,9 +161,7 @@ def _input_error(cfg: PlanConfig, cell: Cell, p: np.ndarray, n_sub: int, n: int,
         ang, rate, extra = eps_model.prepare_inputs(pd.DataFrame({INPUT_SENSOR: noisy}), dt_f,
                                                     None)
         ang, rate = _fit_length(ang[::step], n), _fit_length(rate[::step], n)
-        q = p.copy()
-        q[_COL_SWITCH] = eps_model.effective_column_switch(
-            q[_COL_SWITCH], float(extra["rate_noise_rad_per_s"]))
+        q = eps_model.twin_params(p, float(extra["rate_noise_rad_per_s"]))
         raw = _run_one(cell, ang, rate, dt, q, n_sub)
         out[m] = _signals(cell, raw[None], q[None], ang, sensors, sig_eff)[0]
     return out

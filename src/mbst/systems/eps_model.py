@@ -424,13 +424,23 @@ def prepare_inputs(frame, dt_s: float, spec, window_s: float = INPUT_WINDOW_S
                        "input_window_s": np.asarray(window_s)}
 
 
+def twin_params(ps: np.ndarray, rate_noise_rad_per_s: float) -> np.ndarray:
+    """Parameter vectors as the twin runs them: the column switch widened by the rate noise.
+
+    A copy: the widened switch is the twin's, not a fit's. The planner drives its
+    input-error draws through this too.
+    """
+    ps = np.array(ps, dtype=np.float64)
+    if rate_noise_rad_per_s > 0.0:
+        ps[..., _COL_SWITCH] = effective_column_switch(ps[..., _COL_SWITCH],
+                                                       rate_noise_rad_per_s)
+    return ps
+
+
 def simulate_batch(pt, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Simulate many parameter vectors on one test in parallel (numba prange)."""
-    ps = eps_assist.route(pt.model, pt.spec, np.atleast_2d(ps))
-    ps = np.array(ps, dtype=np.float64)  # a copy: the column switch is the twin's, not a fit's
-    noise = float(pt.inputs.get("rate_noise_rad_per_s", 0.0))
-    if noise > 0.0:
-        ps[:, _COL_SWITCH] = effective_column_switch(ps[:, _COL_SWITCH], noise)
+    ps = twin_params(eps_assist.route(pt.model, pt.spec, np.atleast_2d(ps)),
+                     float(pt.inputs.get("rate_noise_rad_per_s", 0.0)))
     raw = eps.simulate_raw_batch(pt.scenario, pt.spec.motor, pt.input_signal, pt.input_rate, ps,
                                  pt.dt_s)
     out = []
