@@ -161,8 +161,9 @@ def test_assist_identification_on_the_bench(identified):
         assert np.all(np.abs(a - a_true) < np.maximum(0.05 * a_true, 0.05)), mode
     damp = eps_assist.dampings(model, p)
     assert set(damp) == {60.0, 120.0}
-    # issue target 10 % not met: the damping takes up the column viscous term's error
-    # (docs/eps-model.md "Power assist"); the largest within 20 %, the smallest in 0.02
+    # issue target 10 % not met by the cascade: the damping takes up the column viscous
+    # term's error (docs/eps-model.md "Power assist"); the largest within 20 %, the smallest
+    # in 0.02; --joint gets both within 10 % (the slow test below)
     assert damp[120.0] == pytest.approx(DEMO_ASSIST_DAMPING[120.0], rel=0.20)
     assert abs(damp[60.0] - DEMO_ASSIST_DAMPING[60.0]) < 0.02
     # control FIT within 1 point of the true model's
@@ -185,6 +186,26 @@ def test_assist_report(identified):
     params = json.loads((out / "params.json").read_text())["params"]
     assert params["assist.city.c3"]["stage"] == "assist_characteristic"
     assert params["assist.60kph.active_damping_nms_per_rad"]["stage"] == "active_damping"
+
+
+@pytest.mark.slow  # ~5 min: the joint refit is 28 parameters on 15 tests
+def test_joint_refinement_gets_the_damping_per_speed(identified):
+    """Issue #8's 10 % on the damping per speed, with `mbst identify --joint`.
+
+    The cascade leaves the small 60 km/h damping tens of per cent off (it takes up
+    the column's viscous error); refitting everything on all identification tests
+    together tells them apart (docs/eps-model.md "Power assist").
+    """
+    camp, _, cascade, _ = identified
+    result = identify(camp, IdentifySettings(joint_refinement=True))
+    assert result.stages[-1].scenario == "joint"
+    damp = eps_assist.dampings(result.model, result.params)
+    for v, true in DEMO_ASSIST_DAMPING.items():
+        if v in damp:
+            assert damp[v] == pytest.approx(true, rel=0.10), v
+    # what the joint refit fixes
+    small = eps_assist.dampings(cascade.model, cascade.params)[60.0]
+    assert abs(small / DEMO_ASSIST_DAMPING[60.0] - 1) > 0.2
 
 
 @pytest.mark.slow  # 3.5 min; discovery of this backlash runs in CI on the passive rig

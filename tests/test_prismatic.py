@@ -93,6 +93,20 @@ def test_inverse_model_explains_a_simulated_run_where_the_mass_slides():
         P.force_error_percent(_p(), sim[:, 0], sim[:, 1], 1e-3)
 
 
+def test_inverse_model_inverts_the_simulators_drive_lag():
+    """One model: the inverse undoes the simulator's discrete lag, also for T below Δt
+    (there its delay is far less than T, ``lag_delay_s``)."""
+    for lag in (0.0005, 0.003):
+        p = _p(**{"drive.drive_lag.time_constant_s": lag})
+        _, sim = _closed_loop_run(p, 8.0)
+        q, qd, qdd = P.idim_signals(sim[:, 0], 1e-3)
+        slides = np.abs(sim[:, 2]) > 0.02
+        rel = lambda pp: np.linalg.norm((sim[:, 1] - P.inverse_force(  # noqa: E731
+            pp, q, qd, qdd, sim[:, 1], 1e-3))[slides]) / np.linalg.norm(sim[:, 1][slides])
+        assert rel(p) < 0.01, lag
+        assert rel(_p()) > 2 * rel(p), lag
+
+
 # --------------------------------------------------------------------------- hidden effects
 @pytest.fixture(scope="module")
 def asym_run(tmp_path_factory):
@@ -132,6 +146,25 @@ def test_hidden_stribeck_friction_is_named(tmp_path):
     pars = res.findings[0].parameters
     assert pars["static_to_coulomb_ratio"] == pytest.approx(1.6, rel=0.1)
     assert pars["stribeck_velocity"] == pytest.approx(0.01, rel=0.2)
+
+
+def test_equation_error_round_names_a_drive_lag(tmp_path):
+    """The inverse model's round names a lag of the force path and its size.
+
+    On the bench a 1.2 ms lag is plain to the output-error rounds too (it removes 93 %
+    of the closed-loop cost, whose floor is sensor noise); on EMPS it removes 3.4 % of a
+    floor set by real-data misfit. The output-error margin is put out of reach here so
+    that the equation-error round has to find it.
+    """
+    lag = "drive.drive_lag.time_constant_s"
+    camp = read_campaign(run_prismatic_bench(tmp_path, {lag: 0.0012}, seed=6))
+    res = discover(camp, DiscoverSettings(sparse=False, neural=False, min_relative_gain=1.0))
+    keys = [f"{x.effect}:{x.component}" for x in res.findings]
+    assert keys == ["drive_lag:drive"], keys
+    assert res.findings[0].stage == "inverse model"
+    assert res.findings[0].parameters["time_constant_s"] == pytest.approx(0.0012, rel=0.2)
+    eq = next(r for r in res.rounds if r.get("method") == "equation_error")
+    assert eq["accepted"] == "drive_lag:drive" and eq["candidates"][0]["relative_gain"] > 0.2
 
 
 def test_clean_axis_gives_an_empty_answer(tmp_path):
@@ -200,6 +233,9 @@ def test_emps_discovery_names_direction_dependent_friction(emps):
                 "closed_loop_position_error_percent_test",
                 "closed_loop_force_error_percent_test", "open_loop_fit_percent_test"):
         assert np.isfinite(bench[key]), key
+    # the inverse model names the drive's lag the closed loop hides (the issue's 4.5 %)
+    assert [f"{x.effect}:{x.component}" for x in res.findings[1:]] == ["drive_lag:drive"]
+    assert bench["force_error_percent_test"] < 4.5
     # the extension helps where the identification criterion looks, and beats the
     # published closed-loop numbers of the rigid model
     assert bench["force_error_percent_test"] < bench["force_error_percent_test_base"]

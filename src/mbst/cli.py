@@ -81,7 +81,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     if args.tau < 0:
         raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
     settings = IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
-                                progress=not args.quiet)
+                                joint_refinement=args.joint, progress=not args.quiet)
     result = run_identify(camp, args.out, settings)
     if not args.quiet:
         print(result.summary())
@@ -105,7 +105,8 @@ def _cmd_discover(args: argparse.Namespace) -> int:
         max_effects=args.max_effects, min_relative_gain=args.min_gain,
         min_aic_drop=args.min_aic_drop,
         sparse=not args.no_sparse, neural=not args.no_neural,
-        stick_slip=not args.no_stick_slip, progress=not args.quiet,
+        stick_slip=not args.no_stick_slip, equation_error=not args.no_equation_error,
+        progress=not args.quiet,
     )
     result = run_discover(camp, args.out, settings)
     if not args.quiet:
@@ -208,6 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the multi-start")
     p.add_argument("--multistart", type=int, default=2,
                    help="optimiser starts per cascade stage (default 2)")
+    p.add_argument("--joint", action="store_true",
+                   help="after the cascade, refit everything it found on all identification "
+                        "tests together (slower; tells confounded terms apart, e.g. a small "
+                        "active damping from the column's viscous friction)")
     p.set_defaults(func=_cmd_identify)
 
     p = add("discover", "find what the base model lacks, name it, extend the model and "
@@ -227,6 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
     p.add_argument("--no-stick-slip", action="store_true",
                    help="skip the phase-free stick-slip test for Stribeck friction")
+    p.add_argument("--no-equation-error", action="store_true",
+                   help="skip the inverse-model (equation-error) round of rigs that define one "
+                        "(the prismatic axis: it sees a drive lag the closed loop hides)")
     p.set_defaults(func=_cmd_discover)
 
     p = add("plan", "plan a campaign before running it: sensors, cut-outs and inputs that "

@@ -336,7 +336,8 @@ def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
         "campaign": result.campaign,
         "settings": {"tau_s": settings.tau_s, "seed": settings.seed,
                      "multistart": settings.multistart, "max_nfev": settings.max_nfev,
-                     "decimate": settings.decimate},
+                     "decimate": settings.decimate,
+                     "joint_refinement": settings.joint_refinement},
         "params": params,
         "stages": [
             {"scenario": st.scenario, "tests": st.tests, "free": st.free, "cost": st.cost,

@@ -93,6 +93,8 @@ def discover_skip_args(wildcards):
         flags.append("--no-sparse")
     if not config["discover"]["stick_slip"]:
         flags.append("--no-stick-slip")
+    if not config["discover"].get("equation_error", True):
+        flags.append("--no-equation-error")
     if not config["discover"]["neural_residual"]:
         flags.append("--no-neural")
     return " ".join(flags)

@@ -53,6 +53,7 @@ rule identify:
         tau_s=config["preprocess"]["tau_s"],
         seed=config["identify"]["seed"],
         multistart=config["identify"]["multistart"],
+        joint="--joint" if config["identify"].get("joint_refinement") else "",
         code=CODE_VERSION,
     conda:
         "../envs/mbst.yaml"
@@ -62,6 +63,6 @@ rule identify:
         " OPENBLAS_NUM_THREADS={threads} NUMBA_NUM_THREADS={threads}"
         " mbst identify {params.campaign_dir:q} --out {params.tmpdir:q}"
         " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart}"
-        " > {log:q} 2>&1"
+        " {params.joint} > {log:q} 2>&1"
         " && rm -rf {params.outdir:q}"
         " && mv {params.tmpdir:q} {params.outdir:q}"

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from mbst import plots
-from mbst.discovery import stickslip
+from mbst.discovery import equation_error, stickslip
 from mbst.plots import LABELS, MODEL_STYLE, SCALE, motion_reversals, plt
 
 
@@ -73,13 +73,16 @@ def structure_bars(result, path: Path) -> None:
         ax.set_yticks(y, [f"{c['key']} ({c['stage']})" + (" — refit stuck, off"
                                                           if c.get("fell_back") else "")
                           for c in cands], fontsize=7)
-        stick = r.get("method") == "stick_slip"
-        ax.axvline(100 * (stickslip.MIN_GAIN if stick else result_margin(result)),
-                   color="tab:red", ls="--", lw=1, label="acceptance margin")
-        ax.set_xlabel("fast-envelope misfit removed in its stage [%]" if stick
-                      else "residual cost removed in its stage [%]", fontsize=8)
+        method = r.get("method")
+        margin = {"stick_slip": stickslip.MIN_GAIN,
+                  "equation_error": equation_error.MIN_GAIN}.get(method, result_margin(result))
+        ax.axvline(100 * margin, color="tab:red", ls="--", lw=1, label="acceptance margin")
+        ax.set_xlabel({"stick_slip": "fast-envelope misfit removed in its stage [%]",
+                       "equation_error": "inverse-model (equation-error) cost removed [%]"
+                       }.get(method, "residual cost removed in its stage [%]"), fontsize=8)
         acc = r["accepted"] or "none"
-        kind = " (stick-slip test)" if stick else ""
+        kind = {"stick_slip": " (stick-slip test)",
+                "equation_error": " (equation-error test)"}.get(method, "")
         ax.set_title(f"round {r['round']}{kind}: accepted {acc}", fontsize=9)
         ax.grid(axis="x", alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")

@@ -63,6 +63,8 @@ class DiscoverSettings:
     sparse: bool = True
     neural: bool = True
     stick_slip: bool = True
+    # families with an inverse model (ModelDefinition.equation_error): one more round
+    equation_error: bool = True
     neural_iterations: int | None = None
     progress: bool = False
 
@@ -337,6 +339,23 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
             p = p_stick
             cost_cur, _ = total_cost(ids, p, scales, ids_settings.decimate)
         timings["stick_slip_s"] = time.perf_counter() - t0
+    eq_finding = None
+    if settings.equation_error and model.equation_error is not None and \
+            len(accepted) < settings.max_effects:
+        t0 = time.perf_counter()
+        base_free = list(dict.fromkeys(
+            [n for _, names in model.cascade for n in names]
+            + [n for k in accepted for n in model.effects[k].free]))
+        rec, eq_finding, p_eq = _equation_error_round(model, ids, p, base_free, set(accepted),
+                                                      rounds)
+        rounds.append(rec)
+        if eq_finding is not None:
+            # the inverse model named and sized it; the cascade refits the base around it
+            accepted.append(rec["accepted"])
+            p, _, _, _, _ = run_cascade(campaign, ids_settings, base=p_eq,
+                                        extra_free=extra_free)
+            cost_cur, _ = total_cost(ids, p, scales, ids_settings.decimate)
+        timings["equation_error_s"] = time.perf_counter() - t0
 
     # independent evidence from the regressions (identification tests only)
     sparse_ev = neural_ev = None
@@ -363,6 +382,8 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         ))
     if stick_finding is not None:
         findings.append(stick_finding)
+    if eq_finding is not None:
+        findings.append(eq_finding)
 
     # the held-out control tests measure the gain; they decided nothing above
     t0 = time.perf_counter()
@@ -385,6 +406,53 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         neural_model=neural_model, residual_tests=id_res, settings=settings,
         benchmark=benchmark,
     )
+
+
+def _equation_error_round(model, ids: list[PreparedTest], p: np.ndarray, base_free: list[str],
+                          accepted: set[str], rounds: list[dict]
+                          ) -> tuple[dict, Finding | None, np.ndarray]:
+    """The inverse-model structure test, after the output-error rounds found nothing more.
+
+    Returns the round's record, the finding (or None) and the parameter vector
+    with the named effect at its equation-error size (the rest as ``p``).
+    """
+    from mbst.discovery import equation_error as eq
+
+    cost_base, _, scores = eq.equation_error_test(model, ids, p, base_free, accepted)
+    rec = {"round": len(rounds) + 1, "method": "equation_error", "base_cost": cost_base,
+           "candidates": [{**s.record(), "stage": "inverse model"} for s in scores],
+           "accepted": None, "reason": ""}
+    if not scores or scores[0].relative_gain < eq.MIN_GAIN:
+        top = scores[0] if scores else None
+        rec["reason"] = ("equation error (inverse model): " + (
+            f"best candidate {top.key} removes {100 * top.relative_gain:.1f} % of the base's "
+            f"cost" if top else "no candidate") + f"; the margin is {100 * eq.MIN_GAIN:.0f} %")
+        return rec, None, p
+    best = scores[0]
+    rec["accepted"] = best.key
+    spec = model.effects[best.key]
+    p_new = model.vector_from({n: best.params[model.param_index[n]] for n in spec.free}, base=p)
+    total = sum(s.relative_gain for s in scores)
+    pars = ", ".join(f"{k} {v:.3g}" for k, v in best.headline.items())
+    parts = [f"equation error (the inverse model's force residual on the moving samples of "
+             f"the identification tests): inserting {best.effect} in {best.component} "
+             f"({pars}) removed {100 * best.relative_gain:.1f} % of the base's cost (margin "
+             f"{100 * eq.MIN_GAIN:.0f} %; clean bench campaigns ≤ 3 %)"]
+    if len(scores) > 1:
+        parts.append(f"runner-up {scores[1].key} removed {100 * scores[1].relative_gain:.1f} %")
+    seen = next((c for r in reversed(rounds) if r.get("method") is None
+                 for c in r.get("candidates", []) if c["key"] == best.key), None)
+    if seen is not None:
+        parts.append(f"the closed-loop output-error test saw {100 * seen['relative_gain']:.1f} "
+                     "% (the controller hides the force path)")
+    finding = Finding(
+        effect=best.effect, component=best.component,
+        parameters={h: float(p_new[model.param_index[n]]) for h, n in spec.headline.items()},
+        confidence=best.relative_gain / total if total > 0 else 0.0,
+        evidence="; ".join(parts), stage="inverse model", relative_gain=best.relative_gain,
+        aic_delta=None, cv={"folds": 0, "criterion": "equation error"},
+    )
+    return rec, finding, p_new
 
 
 def _stick_slip_round(ids: list[PreparedTest], p: np.ndarray, accepted: set[str],
