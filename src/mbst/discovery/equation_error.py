@@ -14,6 +14,7 @@ cost it removes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +44,10 @@ class EquationErrorScore:
                 "headline": self.headline}
 
 
-def _fit(model: ModelDefinition, tests: list[PreparedTest], p: np.ndarray, free: list[str]
+Residual = Callable[[np.ndarray], np.ndarray]
+
+
+def _fit(model: ModelDefinition, parts: list[Residual], p: np.ndarray, free: list[str]
          ) -> tuple[np.ndarray, float]:
     idx = np.array([model.param_index[n] for n in free])
     lo = np.array([model.spec(n).lower for n in free])
@@ -52,7 +56,7 @@ def _fit(model: ModelDefinition, tests: list[PreparedTest], p: np.ndarray, free:
     def residual(x: np.ndarray) -> np.ndarray:
         q = p.copy()
         q[idx] = x
-        return np.concatenate([model.equation_error(pt, q) for pt in tests])
+        return np.concatenate([part(q) for part in parts])
 
     span = hi - lo
     x0 = np.clip(p[idx], lo + 1e-6 * span, hi - 1e-6 * span)
@@ -71,13 +75,16 @@ def equation_error_test(model: ModelDefinition, tests: list[PreparedTest], p: np
     cascade's and those of the effects already accepted); each candidate
     starts from its catalogue size.
     """
-    p_base, cost_base = _fit(model, tests, p, base_free)
+    parts = [r for r in (model.equation_error(pt) for pt in tests) if r is not None]
+    if not parts:
+        return 0.0, p, []
+    p_base, cost_base = _fit(model, parts, p, base_free)
     scores = []
     for spec in model.catalogue:
         if spec.key in exclude:
             continue
         q = model.vector_from(spec.default_size, base=p_base)
-        q, cost = _fit(model, tests, q, base_free + list(spec.free))
+        q, cost = _fit(model, parts, q, base_free + list(spec.free))
         gain = 1.0 - cost / cost_base if cost_base > 0 else 0.0
         scores.append(EquationErrorScore(
             key=spec.key, effect=spec.effect, component=spec.component,

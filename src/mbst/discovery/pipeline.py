@@ -443,8 +443,8 @@ def _equation_error_round(model, ids: list[PreparedTest], p: np.ndarray, base_fr
     seen = next((c for r in reversed(rounds) if r.get("method") is None
                  for c in r.get("candidates", []) if c["key"] == best.key), None)
     if seen is not None:
-        parts.append(f"the closed-loop output-error test saw {100 * seen['relative_gain']:.1f} "
-                     "% (the controller hides the force path)")
+        parts.append(f"the output-error structure test saw {100 * seen['relative_gain']:.1f} "
+                     f"% of its {seen['stage']} cost (below its margin)")
     finding = Finding(
         effect=best.effect, component=best.component,
         parameters={h: float(p_new[model.param_index[n]]) for h, n in spec.headline.items()},

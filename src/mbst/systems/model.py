@@ -130,10 +130,11 @@ class ModelDefinition:
         a skipped stage on to the next one (the EPS rig's ``suspended``: free
         wheels load the tie-rods too lightly to pin their stiffness).
     equation_error
-        ``equation_error(prepared_test, p) -> residual``: the inverse model's
-        residual of a test (EMPS: the authors' IDIM force error on the moving
-        samples), for rigs whose closed loop hides part of the model from an
-        output-error fit; discovery then runs an equation-error round.
+        ``equation_error(prepared_test) -> residual(p)`` (or ``None``): the
+        inverse model's residual of a test as a function of the parameters
+        (EMPS: the authors' IDIM force error on the moving samples), for rigs
+        whose output-error fit has too high a floor to see part of the model;
+        discovery then runs an equation-error round.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -161,7 +162,7 @@ class ModelDefinition:
     refines: dict[str, tuple[str, ...]] = field(default_factory=dict)
     carry_through: tuple[str, ...] = ()
     report: Callable[[Any, Any], list[str]] | None = None
-    equation_error: Callable[[Any, np.ndarray], np.ndarray] | None = None
+    equation_error: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 
