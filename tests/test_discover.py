@@ -125,6 +125,7 @@ def test_extension_restores_control_fit_to_the_true_model(backlash):
     assert result.gain["control_fit_percent_mean"] > 0
 
 
+@pytest.mark.slow  # ~100 s; CI keeps the backlash, Stribeck, limit-stop and clean cases
 def test_motor_angle_is_used_when_the_campaign_logs_it(tmp_path_factory):
     """The optional motor angle enters every refit and the comparison: the gear gap shows
     there directly, as the motor lagging the column by the width at each reversal."""
