@@ -234,7 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the phase-free stick-slip test for Stribeck friction")
     p.add_argument("--no-equation-error", action="store_true",
                    help="skip the inverse-model (equation-error) round of rigs that define one "
-                        "(the prismatic axis: it sees a drive lag the closed loop hides)")
+                        "(the prismatic axis: on EMPS it names the drive lag the output-error "
+                        "rounds cannot tell from the real-data misfit)")
     p.set_defaults(func=_cmd_discover)
 
     p = add("plan", "plan a campaign before running it: sensors, cut-outs and inputs that "

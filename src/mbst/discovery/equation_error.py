@@ -4,9 +4,9 @@ A rig under position control (EMPS) is fitted by output error of the closed
 loop. On real data that cost has a high floor (EMPS: force FIT 93 %), and a
 drive lag of about a millisecond removes 3 % of it, inside what noise gives
 on the bench. The inverse model — the force the motion needs, the benchmark
-authors' IDIM — has a far lower floor on the samples where the axis moves. A family that defines
-``ModelDefinition.equation_error`` gets this round after the output-error
-rounds: every catalogue candidate not yet accepted is inserted and fitted,
+authors' IDIM — has a far lower floor on the samples where the axis moves.
+A family that defines ``ModelDefinition.equation_error`` gets this round
+after the output-error rounds: every catalogue candidate not yet accepted is inserted and fitted,
 with the base parameters, by least squares of that residual on the
 identification tests, and scored by the share of the base's equation-error
 cost it removes.

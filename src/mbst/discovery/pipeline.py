@@ -437,7 +437,7 @@ def _equation_error_round(model, ids: list[PreparedTest], p: np.ndarray, base_fr
     parts = [f"equation error (the inverse model's force residual on the moving samples of "
              f"the identification tests): inserting {best.effect} in {best.component} "
              f"({pars}) removed {100 * best.relative_gain:.1f} % of the base's cost (margin "
-             f"{100 * eq.MIN_GAIN:.0f} %; clean bench campaigns ≤ 3 %)"]
+             f"{100 * eq.MIN_GAIN:.0f} %; clean bench campaigns ≤ 3.2 %)"]
     if len(scores) > 1:
         parts.append(f"runner-up {scores[1].key} removed {100 * scores[1].relative_gain:.1f} %")
     seen = next((c for r in reversed(rounds) if r.get("method") is None

@@ -125,11 +125,17 @@ def friction_force(p, v, q, f_drive):
 
 
 @nb.njit(cache=True)
+def lag_gain(time_constant_s: float, dt_s: float) -> float:
+    """Per-step gain a of the drive lag f += a·(f_cmd − f): the one place it is defined."""
+    return -math.expm1(-dt_s / time_constant_s) if time_constant_s > 0.0 else 1.0
+
+
+@nb.njit(cache=True)
 def _run(qref, f_meas, f_inj, p, closed, q0, v0, dt, out):
     m = p[I_M]
     q, v = q0, v0
     q_prev, qf_prev = q0, q0
-    lag = 1.0 - math.exp(-dt / p[I_LAG]) if p[I_LAG] > 0.0 else 1.0
+    lag = lag_gain(p[I_LAG], dt)
     f_app = f_meas[0]
     for k in range(qref.shape[0]):
         if closed:
@@ -264,9 +270,7 @@ def lag_delay_s(time_constant_s: float, dt_s: float) -> float:
     """Mean delay of the simulator's drive lag: the discrete first-order filter
     f += a·(f_cmd − f), a = 1 − exp(−Δt/T), delays by Δt·(1 − a)/a (≈ T − Δt/2 for
     T ≫ Δt; for T < Δt far less than T)."""
-    if time_constant_s <= 0.0:
-        return 0.0
-    a = -math.expm1(-dt_s / time_constant_s)
+    a = lag_gain(time_constant_s, dt_s)
     return dt_s * (1.0 - a) / a
 
 
