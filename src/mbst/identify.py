@@ -53,6 +53,8 @@ class IdentifySettings:
 
 
 JOINT_STAGE = "joint"
+# parameters pre-identification measured directly and the cascade holds (``preid["held"]``)
+HELD_STAGE = "measured_points"
 # a stage cost above this multiple of what the sensor noise alone leaves is not the optimum
 # of a right model: on the compact plan the wrong basin sat at 200x, the right one at 0.7x
 FAR_ABOVE_NOISE = 10.0
@@ -151,7 +153,8 @@ def run_cascade(
         p[model.param_index[k]] = float(np.clip(v, spec.lower, spec.upper))
     warnings += preid["notes"]
 
-    fixed: set[str] = set()
+    # what pre-identification measured better than an output-error fit would (the model says)
+    fixed: set[str] = {n for n in preid.get("held", {}) if only is None or n in only}
     stages: list[StageResult] = []
     carried: list[str] = []
     rng = np.random.default_rng(settings.seed)
@@ -315,6 +318,11 @@ def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
             std[n] = st.std_error[n]
             at_bound[n] = st.at_bound[n]
             ident[n] = st.identifiable[n]
+    for n, sd in result.preid.get("held", {}).items():
+        stage_of.setdefault(n, HELD_STAGE)
+        std.setdefault(n, sd)
+        at_bound.setdefault(n, False)
+        ident.setdefault(n, bool(np.isfinite(sd)))
     params = {}
     for i, spec in enumerate(result.model.param_specs):
         if spec.kind == "effect" and spec.name not in stage_of:

@@ -9,9 +9,18 @@ import numpy as np
 
 from mbst.systems import eps_assist
 
+# torque span of the inset that shows the curve's foot
+FOOT_NM = 0.6
 
-def _binned(t: np.ndarray, a: np.ndarray, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:
+
+def _binned(t: np.ndarray, a: np.ndarray, bins: int = 40, span: float | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
     """Median assist per torque bin: the raw points of a test are thousands and noisy."""
+    if span is not None:
+        keep = np.abs(t) <= span
+        t, a = t[keep], a[keep]
+        if not len(t):
+            return np.array([]), np.array([])
     edges = np.linspace(np.min(t), np.max(t), bins + 1)
     k = np.clip(np.digitize(t, edges) - 1, 0, bins - 1)
     tc, ac = [], []
@@ -23,8 +32,12 @@ def _binned(t: np.ndarray, a: np.ndarray, bins: int = 40) -> tuple[np.ndarray, n
     return np.array(tc), np.array(ac)
 
 
-def measured_points(result: Any) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
-    """Per assist mode, measured (torsion-bar torque, assist torque) of the slow powered tests."""
+def measured_points(result: Any, span: float | None = None
+                    ) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
+    """Per assist mode, measured (torsion-bar torque, assist torque) of the slow powered tests.
+
+    Binned medians; ``span`` keeps only |T| ≤ span (the curve's foot, where c1 shows).
+    """
     from mbst.systems.eps_model import assist_points
 
     model, p = result.model, result.params
@@ -44,7 +57,7 @@ def measured_points(result: Any) -> dict[str, tuple[np.ndarray, np.ndarray, str]
                             p[idx["offset.motor_current_a"]])
         if got is None:
             continue
-        t, a = _binned(got[0], got[1])
+        t, a = _binned(got[0], got[1], span=span)
         out.setdefault(on.spec.assist_mode or "default", []).append((t, a, f"{on.id}: {got[2]}"))
     return {m: (np.concatenate([x[0] for x in v]), np.concatenate([x[1] for x in v]),
                 "; ".join(x[2] for x in v)) for m, v in out.items()}
@@ -62,7 +75,7 @@ def write(result: Any, out: Path) -> list[str]:
     family = "hps" if p[model.param_index["assist.family"]] == 1.0 else "eps"
     curves = eps_assist.curves(model, p)
     points = measured_points(result)
-    std = {}
+    std = dict(result.preid.get("held", {}))
     for st in result.stages:
         std.update(st.std_error)
 
@@ -82,7 +95,19 @@ def write(result: Any, out: Path) -> list[str]:
     ax.set_ylabel("assist torque A(T), column side [N·m]", fontsize=8)
     ax.set_title(f"Power-assist characteristic per mode ({family.upper()} form)", fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left")
+    # the curve's foot, where its slope at zero torque (c1) is read
+    foot = measured_points(result, span=FOOT_NM)
+    if foot:
+        ins = ax.inset_axes([0.62, 0.08, 0.35, 0.35])
+        grid = np.linspace(-FOOT_NM, FOOT_NM, 200)
+        for k, (mode, c) in enumerate(curves.items()):
+            if mode in foot:
+                ins.plot(foot[mode][0], foot[mode][1], "o", ms=2, color=f"C{k}", alpha=0.6)
+            ins.plot(grid, eps_assist.characteristic(grid, c, family), color=f"C{k}", lw=1.2)
+        ins.set_title(f"|T| ≤ {FOOT_NM:g} N·m", fontsize=7)
+        ins.tick_params(labelsize=6)
+        ins.grid(alpha=0.3)
     fig.tight_layout()
     _save(fig, out / "assist_characteristic.png")
 
@@ -112,6 +137,13 @@ def write(result: Any, out: Path) -> list[str]:
                  for q in cv]
         cells = [f"{cv[q]:.4g} ± {std.get(n, float('nan')):.2g}" for q, n in zip(cv, names)]
         lines.append(f"| {mode} | " + " | ".join(cells) + " |")
+    measured = result.preid.get("boost_curve")
+    if measured:
+        beside = measured["fitted_beside"]
+        lines += ["", f"Curves of {', '.join(measured['points'])} from the motor current against "
+                  f"the torque sensor ({measured['method']}, {sum(measured['points'].values())} "
+                  f"points of {', '.join(measured['tests'])}), held by the cascade; fitted "
+                  "beside them: " + ", ".join(f"`{n}` {v:.4g}" for n, v in beside.items()) + "."]
     if damp:
         lines += ["", "| vehicle speed [km/h] | active damping [N·m·s/rad] |", "|---|---|"]
         for s, val in damp.items():

@@ -14,7 +14,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
 from mbst.preprocess import cubic_window, white_noise_std
-from mbst.systems import eps, eps_assist, eps_assist_report
+from mbst.systems import eps, eps_assist, eps_assist_report, eps_boost_curve
 from mbst.systems import eps_kernel as K
 from mbst.systems.eps_channels import OUTPUT_CHANNELS, SYSTEM_NAME
 from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, PARAM_SPECS
@@ -321,11 +321,17 @@ def assist_points(on: PreparedTest, off: PreparedTest | None, p: np.ndarray,
         "steering_column.regularisation_velocity_rad_per_s")
     w = on.omega_rad_per_s
     t_on = on.measured["steering_torque_nm"] - torque_offset_nm
-    t_tb = t_on - fc * np.tanh(w / veps)
+    t_tb = t_on - fc * np.tanh(w / veps) - g("steering_column.viscous_nms_per_rad") * w
     moving = np.abs(w) > 0.05 * np.max(np.abs(w))
     if "motor_current_a" in on.measured:
+        # the current carries A(T) − c_ad·ω: the test's own active damping goes back on
+        index = on.model.param_index if on.model is not None else PARAM_INDEX
+        speed = on.spec.vehicle_speed_kph
+        name = (eps_assist.speed_param(speed) if speed is not None
+                else f"assist.{eps_assist.DAMPING}")
+        damping = p[index[name]] if name in index else 0.0
         a = g("worm_gear_ratio") * g("motor_torque_constant_nm_per_a") * (
-            on.measured["motor_current_a"] - current_offset_a)
+            on.measured["motor_current_a"] - current_offset_a) + damping * w
         return t_tb[moving], a[moving], "motor current"
     if off is None:
         return None
@@ -403,6 +409,22 @@ def _pre_identify_assist(tests: list[PreparedTest], p: np.ndarray, out: dict, co
         curves[mode] = {"points": int(len(a)), "sources": sources, **c}
     if curves:
         out["assist_curve_start"] = curves
+    # with the motor current logged, the measured points give the curve itself
+    start = p.copy()
+    index = powered[0].model.param_index if powered[0].model is not None else PARAM_INDEX
+    for k, v in out["values"].items():
+        if k in index:
+            start[index[k]] = v
+    fit = eps_boost_curve.fit_boost_curve(powered, index, start, family)
+    if fit is not None:
+        out["values"].update(fit.values)
+        held = {n: fit.std_error[n] for n in fit.values if n.startswith("assist.")}
+        out["held"] = {**out.get("held", {}), **held}
+        out["boost_curve"] = fit.record()
+        out["notes"].append(
+            f"assist curve of {', '.join(fit.points)} and active damping from the motor "
+            f"current against the torque sensor ({len(fit.tests)} powered tests, "
+            f"{fit.method}); the cascade holds them")
 
 
 # -------------------------------------------------------------------------------------

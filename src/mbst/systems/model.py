@@ -89,7 +89,10 @@ class ModelDefinition:
     prepare_inputs
         Derives the model's inputs from a test's frame.
     pre_identify
-        Starting values and bounds from signal processing.
+        Starting values and bounds from signal processing: a dict with
+        ``values`` (starts), ``upper`` (bounds), ``notes`` and optionally
+        ``held`` (name → std error: values measured directly, which the
+        cascade keeps instead of fitting).
     carries_over
         Whether a parameter of a stage with no test is handed to the next stage.
     search_lower
