@@ -16,7 +16,12 @@ import yaml
 
 from mbst.cli import main
 from mbst.plan.config import PlanError, load_plan, parse_plan
-from mbst.plan.information import fisher, identifiability, prior_information
+from mbst.plan.information import (
+    fisher,
+    identifiability,
+    prior_information,
+    weak_combinations,
+)
 from mbst.plan.run import plan_campaign
 from mbst.plan.selection import evaluate, naive_plan, plan_cost
 from mbst.plan.sensitivity import analyse
@@ -292,3 +297,27 @@ def test_bad_plan_is_one_line_naming_file_and_key(tmp_path, capsys, mutate, key)
     msg = capsys.readouterr().err.strip()
     assert "\n" not in msg and str(path) in msg and f"'{key}'" in msg, msg
     assert not (tmp_path / "o").exists()
+
+
+def test_two_terms_of_one_sum_are_reported_as_their_combination():
+    """Two friction terms seen only as a sum: the plan pins the sum, not each term.
+
+    The measurement sees S = 0.2·θ₀ + 0.8·θ₁ (shares 20/80 %) with 1 % noise, and
+    θ₂ on its own: in ln θ the information is rank one in (θ₀, θ₁).
+    """
+    shares = np.array([0.2, 0.8, 0.0])
+    jac = np.vstack([np.tile(shares, (50, 1)), np.tile([0.0, 0.0, 1.0], (50, 1))]) / 0.01
+    f = (jac.T @ jac + np.diag([1e-2, 1e-2, 1e-2]))[None]  # a weak prior keeps it invertible
+    idf = identifiability(f, 0.10, np.ones(3))
+    assert not idf.identifiable[0] and not idf.identifiable[1] and idf.identifiable[2]
+    combos = {c["index"]: c for c in idf.combinations}
+    assert set(combos) == {0, 1}
+    # θ₀·θ₁^x with x the ratio of the shares, known to about the noise over √50
+    assert combos[0]["partners"].keys() == {1}
+    assert combos[0]["exponents"][1] == pytest.approx(4.0, rel=0.05)
+    assert combos[1]["exponents"][0] == pytest.approx(0.25, rel=0.05)
+    assert combos[0]["combination_relative_std"] < 0.01 / 0.2 / np.sqrt(50) * 1.1
+    # a lone weak unknown gets no partner
+    lone = weak_combinations(np.diag([4.0, 1e-4, 1e-4])[None], np.array([[2.0, 0.01, 0.01]]),
+                             0.10)
+    assert lone == [{"index": 0, "relative_std": 2.0, "sweep_point": 0, "partners": {}}]

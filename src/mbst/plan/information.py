@@ -18,7 +18,7 @@ independent, so the covariance becomes F⁻¹ + F⁻¹·B·F⁻¹ with B = Σ_te
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -132,9 +132,17 @@ class Identifiability:
     bits: float  # mean over the sweep
     identifiable: np.ndarray  # (P,) bool: worst σ ≤ target
 
+    # per unknown above the target: the combination with its correlated partners that the
+    # information does pin down (``weak_combinations``)
+    combinations: list[dict] = field(default_factory=list)
+
     def max_abs_correlation(self) -> float:
         c = np.abs(self.correlation - np.diag(np.diag(self.correlation)))
         return float(c.max()) if c.size else 0.0
+
+
+# |correlation| beyond which another unknown counts as a partner of one above the target
+PARTNER_CORRELATION = 0.7
 
 
 def identifiability(f: np.ndarray, target: float, prior_info: np.ndarray,
@@ -152,4 +160,40 @@ def identifiability(f: np.ndarray, target: float, prior_info: np.ndarray,
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
     worst = rel.max(axis=0)
     return Identifiability(rel, worst, corr, cond, float(np.mean(bits_gained(f, prior_info))),
-                           worst <= target)
+                           worst <= target, weak_combinations(cov, rel, target))
+
+
+def weak_combinations(cov: np.ndarray, rel: np.ndarray, target: float,
+                      partner_correlation: float = PARTNER_CORRELATION) -> list[dict]:
+    """What the information says about each unknown it leaves above ``target``.
+
+    At the sweep point where the unknown is worst, its partner is the other
+    unknown above the target most correlated with it, beyond
+    ``partner_correlation`` (those within the target count as known); the
+    best-determined combination of the pair is the covariance's eigenvector of
+    least variance, a product of powers θ_a·θ_b^x (ln θ coordinates). For two
+    terms of one sum (motor and rack viscous friction, both at the pinion's
+    speed) x is the ratio of their shares: the plan identifies the sum, not
+    each term.
+    """
+    out = []
+    above = rel.max(axis=0) > target
+    for j in np.flatnonzero(above):
+        k = int(np.argmax(rel[:, j]))
+        c = cov[k]
+        d = np.sqrt(np.maximum(np.diag(c), 1e-300))
+        corr = c[j] / (d[j] * d)
+        # the partner: the unknown above the target most correlated with it (the others
+        # within the target count as known); a pair reads as a sum's shares
+        group = [j] + [i for i in np.argsort(-np.abs(corr))
+                       if i != j and above[i] and abs(corr[i]) >= partner_correlation][:1]
+        rec = {"index": int(j), "relative_std": float(rel[k, j]), "sweep_point": k,
+               "partners": {int(i): float(corr[i]) for i in group[1:]}}
+        if len(group) > 1:
+            sub = c[np.ix_(group, group)]
+            lam, vec = np.linalg.eigh(sub)
+            w = vec[:, 0] / vec[0, 0]
+            rec["exponents"] = {int(i): float(x) for i, x in zip(group, w, strict=True)}
+            rec["combination_relative_std"] = float(np.sqrt(max(w @ sub @ w, 0.0)))
+        out.append(rec)
+    return out

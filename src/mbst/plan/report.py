@@ -13,6 +13,7 @@ from mbst.campaign import FORMAT as CAMPAIGN_FORMAT
 from mbst.outputs import atomic_text, write_json, write_markdown
 from mbst.plan.config import PlanConfig
 from mbst.plan.information import (
+    PARTNER_CORRELATION,
     fisher,
     identifiability,
     input_error_term,
@@ -183,6 +184,27 @@ def markdown(cfg: PlanConfig, res) -> str:
     for p, a, b in zip(sens.unknowns, d["planned_identifiability"]["worst_relative_std"],
                        d["naive_identifiability"]["worst_relative_std"], strict=True):
         lines.append(f"| {p} | {a:.3g} | {b:.3g} |")
+    above = d["planned_identifiability"].get("above_target", [])
+    if above:
+        lines += ["", f"Unknowns the plan leaves above {100 * cfg.target_relative_std:g} %, and "
+                  "what it does pin down: the best-determined product θ_a·θ_b^x of each with "
+                  "the other unknown above the target most correlated with it (|r| ≥ "
+                  f"{PARTNER_CORRELATION:g}, at its worst sweep point; for two terms of one sum "
+                  "x is the ratio of their shares). A small σ there means the tests see the "
+                  "two only together: fix one (a datasheet, a separate test) or lump them.",
+                  "",
+                  "| unknown | σ | correlated with (r) | identified combination | its σ |",
+                  "|---|---|---|---|---|"]
+        for c in above:
+            partners = ", ".join(f"`{n}` ({r:+.2f})" for n, r in c["partners"].items()) or "–"
+            if "exponents" in c:
+                combo = " · ".join(f"{n}^{x:.2g}" if abs(x - 1) > 1e-9 else n
+                                   for n, x in c["exponents"].items())
+                sig = f"{c['combination_relative_std']:.3g}"
+            else:
+                combo, sig = "– (no partner: too little information on it alone)", "–"
+            lines.append(f"| `{c['parameter']}` | {c['relative_std']:.3g} | {partners} | "
+                         f"{combo} | {sig} |")
     lines += ["", f"Planned: condition number {d['planned_identifiability']['condition_number']:.3g}"
               f", largest |correlation| {d['planned_identifiability']['max_abs_correlation']:.3f} "
               "(correlation.csv).",

@@ -72,12 +72,21 @@ class PlanResult:
         return "\n".join(lines)
 
 
-def _id_record(idf: Identifiability) -> dict:
+def _id_record(idf: Identifiability, names: list[str]) -> dict:
+    combos = []
+    for c in idf.combinations:
+        rec = {"parameter": names[c["index"]], "relative_std": c["relative_std"],
+               "partners": {names[i]: r for i, r in c["partners"].items()}}
+        if "exponents" in c:
+            rec["exponents"] = {names[i]: x for i, x in c["exponents"].items()}
+            rec["combination_relative_std"] = c["combination_relative_std"]
+        combos.append(rec)
     return {"worst_relative_std": idf.worst_relative_std,
             "centre_relative_std": idf.relative_std[0],
             "identifiable": idf.identifiable, "all_identifiable": bool(idf.identifiable.all()),
             "condition_number": idf.condition_number,
-            "max_abs_correlation": idf.max_abs_correlation(), "bits": idf.bits}
+            "max_abs_correlation": idf.max_abs_correlation(), "bits": idf.bits,
+            "above_target": combos}
 
 
 def plan_campaign(cfg: PlanConfig, progress: bool = False, proof: bool | None = None,
@@ -131,8 +140,8 @@ def plan_campaign(cfg: PlanConfig, progress: bool = False, proof: bool | None = 
         "budget": cfg.budget,
         "planned": describe_plan(cfg, sens, plan),
         "naive": describe_plan(cfg, sens, naive),
-        "planned_identifiability": _id_record(planned_id),
-        "naive_identifiability": _id_record(naive_id),
+        "planned_identifiability": _id_record(planned_id, cfg.unknown_names),
+        "naive_identifiability": _id_record(naive_id, cfg.unknown_names),
         "selection_path": [vars(s) for s in steps],
         "notes": notes,
         "effects": effects,
