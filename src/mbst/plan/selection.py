@@ -105,19 +105,6 @@ def required_channels(sens: Sensitivity, cells) -> list[str]:
     return out
 
 
-def _required_by_cell(sens: Sensitivity) -> np.ndarray:
-    """(C, S) the campaign-format channels each cell's scenario requires.
-
-    They are logged whether chosen or not, and identification fits them: their
-    information and their share of the input error count from the scenario's
-    first test on (else a plan that met the target could miss it once the
-    format added them).
-    """
-    return np.array([[s in required_channels(sens, [c]) and SENSORS[s].campaign_channel
-                      for s in sens.sensors] for c in range(len(sens.cells))],
-                    bool).reshape(len(sens.cells), len(sens.sensors))
-
-
 def _objective(rel: np.ndarray, target: float) -> np.ndarray:
     """Σ_p log max(σ_p, target), mean over sweep points; rel is (..., K, P)."""
     return np.log(np.maximum(rel, target)).sum(axis=-1).mean(axis=-1)
@@ -148,10 +135,8 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
     notes: list[str] = []
 
     def cost_of(ch: np.ndarray, cnt: np.ndarray) -> float:
-        # the format's channels are paid for with the first test of their scenario
         tests = {c: int(v) for c, v in enumerate(cnt) if v}
-        mask = logged_with(ch, cnt)
-        return plan_cost(cfg, sens, [s for s, on in zip(sens.sensors, mask, strict=True) if on],
+        return plan_cost(cfg, sens, [s for s, on in zip(sens.sensors, ch, strict=True) if on],
                          tests)["identification"]
 
     def info(eff_sel: np.ndarray) -> np.ndarray:
@@ -164,24 +149,10 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
     def total_error(q, cnt: np.ndarray):
         return None if q is None else np.einsum("c,kcpq->kpq", cnt.astype(float), q)
 
-    req_by_cell = _required_by_cell(sens)
-
-    def logged_with(ch: np.ndarray, cnt: np.ndarray) -> np.ndarray:
-        return ch | req_by_cell[cnt > 0].any(axis=0)
-
-    errors_of: dict[bytes, np.ndarray | None] = {}
-
-    def per_test_error_cached(mask: np.ndarray):
-        key = mask.tobytes()
-        if key not in errors_of:
-            errors_of[key] = per_test_error(mask)
-        return errors_of[key]
-
     def state_eval(ch, aa, bb, nn, cnt):
-        mask = logged_with(ch, cnt)
-        eff = offset_eliminated(aa, bb, nn) * mask[:, None, None]
+        eff = offset_eliminated(aa, bb, nn) * ch[:, None, None]
         f = info(eff)
-        q = per_test_error_cached(mask)
+        q = per_test_error(ch)
         return f, relative_std(f, total_error(q, cnt)), q
 
     f_cur, rel_cur, q_cur = state_eval(chosen, a, b, n, counts)
@@ -200,7 +171,9 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
         eff_new = offset_eliminated(a_new, b_new, n_new[:, None, :])
         eff_cur = offset_eliminated(a, b, n)
         moves, fs, dcost, bs = [], [], [], []
-        one = np.eye(ss, dtype=bool)
+        b_cur = total_error(q_cur, counts)
+        q_with = {s: per_test_error(chosen | (np.arange(ss) == s))
+                  for s in np.flatnonzero(~chosen & fitted)}
         for c in range(cc):
             sid = sens.cells[c].scenario_id
             # a repeat is a candidate too: a fresh draw of the angle noise averages the
@@ -211,26 +184,23 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
             cnt = counts.copy()
             cnt[c] += 1
             base_cost = cost_of(chosen, cnt)
-            mask = logged_with(chosen, cnt)
+            f_t = info(eff_new[c] * chosen[None, :, None, None])
             moves.append(("test", c, None))
-            fs.append(info(eff_new[c] * mask[None, :, None, None]))
+            fs.append(f_t)
             dcost.append(base_cost - cost_cur)
-            bs.append(total_error(per_test_error_cached(mask), cnt))
-            for s in np.flatnonzero(~mask & fitted):
+            bs.append(None if q_cur is None else b_cur + q_cur[:, c])
+            for s in np.flatnonzero(~chosen & fitted):
                 if not logged[c, s]:
                     continue
-                with_s = mask | one[s]
                 moves.append(("pair", c, s))
-                fs.append(info(eff_new[c] * with_s[None, :, None, None]))
+                fs.append(f_t + eff_new[c][:, s])
                 dcost.append(base_cost + s_cost[s] - cost_cur)
-                bs.append(total_error(per_test_error_cached(with_s), cnt))
-        mask = logged_with(chosen, counts)
-        for s in np.flatnonzero(~mask & fitted):
-            with_s = mask | one[s]
+                bs.append(total_error(q_with[s], cnt))
+        for s in np.flatnonzero(~chosen & fitted):
             moves.append(("sensor", None, s))
-            fs.append(info(eff_cur * with_s[None, :, None, None]))
+            fs.append(f_cur + eff_cur[:, s])
             dcost.append(s_cost[s])
-            bs.append(total_error(per_test_error_cached(with_s), counts))
+            bs.append(total_error(q_with[s], counts))
         if not moves:
             break
         dcost = np.array(dcost)
@@ -270,15 +240,11 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
 def _prune(cfg, sens, chosen, counts, mandatory, rate_factor, steps, prior):
     """Drop any test or sensor (most expensive first) whose removal keeps the target."""
     target = cfg.target_relative_std
-    req_by_cell = _required_by_cell(sens)
-
-    def rel_of(ch, cnt) -> tuple[np.ndarray, np.ndarray]:
-        mask = ch | req_by_cell[cnt > 0].any(axis=0)
-        f = fisher(sens, mask, cnt, rate_factor)
-        return f, relative_std(f, input_error_term(sens, mask, cnt, rate_factor))
 
     def ok(ch, cnt) -> bool:
-        return bool(rel_of(ch, cnt)[1].max() <= target)
+        f = fisher(sens, ch, cnt, rate_factor)
+        return bool(relative_std(f, input_error_term(sens, ch, cnt, rate_factor)).max()
+                    <= target)
 
     items = [("test", c, cfg.input(sens.cells[c].input_id).cost) for c in np.flatnonzero(counts)]
     items += [("sensor", s, cfg.sensor(sens.sensors[s]).cost)
@@ -292,9 +258,9 @@ def _prune(cfg, sens, chosen, counts, mandatory, rate_factor, steps, prior):
         if ok(ch, cnt):
             chosen, counts = ch, cnt
             name = sens.cells[i].label if kind == "test" else sens.sensors[i]
-            f, rel = rel_of(chosen, counts)
-            mask = chosen | req_by_cell[counts > 0].any(axis=0)
-            cost = plan_cost(cfg, sens, [s for s, on in zip(sens.sensors, mask, strict=True)
+            f = fisher(sens, chosen, counts, rate_factor)
+            rel = relative_std(f, input_error_term(sens, chosen, counts, rate_factor))
+            cost = plan_cost(cfg, sens, [s for s, on in zip(sens.sensors, chosen, strict=True)
                                          if on],
                              {c: int(v) for c, v in enumerate(counts) if v})["identification"]
             steps.append(Step(f"-{kind} {name} (pruned)", cost,
