@@ -268,3 +268,26 @@ def test_cli_discover_bad_campaign_writes_nothing(tmp_path, capsys):
     assert len(err.splitlines()) == 1
     assert "'s2_ramp'" in err and "rack_position_m" in err and "row 10" in err
     assert not out.exists()
+
+
+def test_confidence_weighs_candidates_with_one_sample_count():
+    """A candidate removing 91 % of a stage's cost outweighs one removing 64 %.
+
+    Each candidate's own ΔAIC counts its own residual's effective samples; the
+    demo-assist campaign's backlash (507 samples) lost its weight to a motor
+    hysteresis (1767) before the weights used one count.
+    """
+    from types import SimpleNamespace
+
+    from mbst.discovery.pipeline import akaike_weight
+    from mbst.discovery.structure import aic_delta
+
+    def cand(gain, n_eff):
+        return SimpleNamespace(stage="free_tie_rods", cost=1.0 - gain, cost_base=1.0,
+                               k_effect=1, n_eff=n_eff,
+                               aic_delta=aic_delta(1.0 - gain, 1.0, n_eff, 1))
+
+    backlash, hysteresis = cand(0.913, 507.0), cand(0.643, 1767.0)
+    assert hysteresis.aic_delta < backlash.aic_delta  # what misled the old weight
+    assert akaike_weight(backlash, [backlash, hysteresis]) > 0.99
+    assert akaike_weight(hysteresis, [hysteresis, backlash]) < 0.01

@@ -140,7 +140,8 @@ def write(result: Any, out: Path) -> list[str]:
     measured = result.preid.get("boost_curve")
     if measured:
         beside = measured["fitted_beside"]
-        lines += ["", f"Curves of {', '.join(measured['points'])} from the motor current against "
+        lines += ["", f"Curves of {', '.join(measured['points'])} and the active damping per "
+                  "speed from the motor current against "
                   f"the torque sensor ({measured['method']}, {sum(measured['points'].values())} "
                   f"points of {', '.join(measured['tests'])}), held by the cascade; fitted "
                   "beside them: " + ", ".join(f"`{n}` {v:.4g}" for n, v in beside.items()) + "."]
