@@ -174,6 +174,7 @@ def test_hps_curve_from_the_motor_current(tmp_path):
     for n in ("assist.normal.c1", "assist.city.c1"):
         assert pre["values"][n] == pytest.approx(truth[n], rel=0.02), n
     assert pre["boost_curve"]["method"].startswith("orthogonal distance regression")
+    assert pre["boost_curve"]["converged"]
 
 
 def test_assist_identification_on_the_bench(identified):

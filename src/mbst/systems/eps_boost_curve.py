@@ -35,6 +35,8 @@ TORQUE = "steering_torque_nm"
 # Samples where the steering wheel turns slower than this share of its peak rate are
 # left out: there the column friction's sign is the smoothed rate's noise.
 MOVING_SHARE = 0.05
+# fewer moving samples than this and a test adds nothing to the regression
+MIN_POINTS = 20
 _COLUMN = ("steering_column.coulomb_nm", "steering_column.viscous_nms_per_rad",
            "offset.steering_torque_nm")
 
@@ -49,13 +51,14 @@ class BoostCurveFit:
     tests: list[str]
     noise: dict[str, float]
     method: str
+    converged: bool
     points: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def record(self) -> dict[str, Any]:
         """JSON-ready summary (params.json ``preidentification.boost_curve``)."""
         return {"method": self.method, "tests": self.tests, "values": self.values,
                 "std_error": self.std_error, "fitted_beside": self.nuisance,
-                "noise": self.noise,
+                "noise": self.noise, "converged": self.converged,
                 "points": {m: int(len(t)) for m, (t, _) in self.points.items()}}
 
 
@@ -94,33 +97,41 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
     g = lambda name: float(p[param_index[name]])  # noqa: E731
     gain = g("worm_gear_ratio") * g("motor_torque_constant_nm_per_a")
     v_eps = g("steering_column.regularisation_velocity_rad_per_s")
+    moving = {}
+    for pt in used:
+        w = np.abs(np.asarray(pt.omega_rad_per_s, float))
+        keep = w > MOVING_SHARE * np.max(w) if len(w) else np.zeros(0, bool)
+        if keep.sum() >= MIN_POINTS:
+            moving[pt.id] = keep
+    used = [pt for pt in used if pt.id in moving]
+    if not used:
+        return None
     modes = sorted({pt.spec.assist_mode or "default" for pt in used})
-    speeds = sorted({pt.spec.vehicle_speed_kph for pt in used
-                     if pt.spec.vehicle_speed_kph is not None})
+    # a test without a vehicle speed runs on the generic damping (eps_assist.route)
+    speeds = sorted({pt.spec.vehicle_speed_kph for pt in used},
+                    key=lambda v: (v is None, v or 0.0))
     qs = eps_assist.curve_names(family)
     nq, nm, ns = len(qs), len(modes), len(speeds)
 
     cols, ys, sx, sy = [], [], [], []
     for pt in used:
         w = np.asarray(pt.omega_rad_per_s, float)
-        moving = np.abs(w) > MOVING_SHARE * np.max(np.abs(w))
-        n = int(moving.sum())
-        speed = pt.spec.vehicle_speed_kph
+        keep = moving[pt.id]
+        n = int(keep.sum())
         cols.append(np.vstack([
-            pt.raw[TORQUE][moving], w[moving],
+            pt.raw[TORQUE][keep], w[keep],
             np.full(n, modes.index(pt.spec.assist_mode or "default"), float),
-            np.full(n, speeds.index(speed) if speed is not None else -1, float)]))
-        ys.append(gain * pt.raw[CURRENT][moving])
+            np.full(n, speeds.index(pt.spec.vehicle_speed_kph), float)]))
+        ys.append(gain * pt.raw[CURRENT][keep])
         sx.append(white_noise_std(pt.raw[TORQUE], pt.dt_s))
         sy.append(gain * white_noise_std(pt.raw[CURRENT], pt.dt_s))
     x = np.hstack(cols)
     y = np.concatenate(ys)
     mode_of, speed_of = x[2].astype(int), x[3].astype(int)
-    has_speed = speed_of >= 0
 
     def unpack(beta: np.ndarray):
         c = beta[:nq * nm].reshape(nm, nq)
-        damping = np.r_[beta[nq * nm:nq * nm + ns], 0.0]  # index −1: no speed given
+        damping = beta[nq * nm:nq * nm + ns]
         fc, visc, t_off, a_off = beta[nq * nm + ns:]
         return c, damping, fc, visc, t_off, a_off
 
@@ -133,7 +144,7 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
             a = c[mode_of, 0] * s * np.expm1(np.abs(t_tb))
         else:
             a = c[mode_of, 0] * t_tb + c[mode_of, 1] * s * np.abs(t_tb) ** c[mode_of, 2]
-        return a - np.where(has_speed, damping[speed_of], 0.0) * w + a_off
+        return a - damping[speed_of] * w + a_off
 
     lo = np.r_[np.tile([0.0, 0.0, 1.0][:nq], nm), np.zeros(ns), 0.0, 0.0, -5.0, -50.0]
     hi = np.r_[np.tile([20.0, 20.0, 4.0][:nq], nm), np.ones(ns), 1.0, 0.2, 5.0, 50.0]
@@ -162,8 +173,9 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
             values[_curve_param(mode, q)] = float(c[k, j])
             std[_curve_param(mode, q)] = float(sd[k * nq + j])
     for j, v in enumerate(speeds):
-        values[eps_assist.speed_param(v)] = float(damping[j])
-        std[eps_assist.speed_param(v)] = float(sd[nq * nm + j])
+        name = eps_assist.speed_param(v) if v is not None else f"assist.{eps_assist.DAMPING}"
+        values[name] = float(damping[j])
+        std[name] = float(sd[nq * nm + j])
     values["offset.motor_current_a"] = float(a_off / gain)
     nuisance = {n: float(v) for n, v in zip(_COLUMN, (fc, visc, t_off))}
 
@@ -172,7 +184,8 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
         sel = mode_of == k
         w = x[1][sel]
         t_tb = x[0][sel] - t_off - fc * np.tanh(w / v_eps) - visc * w
-        a = y[sel] - a_off + np.where(has_speed[sel], damping[speed_of[sel]], 0.0) * w
+        a = y[sel] - a_off + damping[speed_of[sel]] * w
         points[mode] = (t_tb, a)
     return BoostCurveFit(values, std, nuisance, [pt.id for pt in used],
-                         {"torque_nm": sx_torque, "assist_nm": sy_assist}, method, points)
+                         {"torque_nm": sx_torque, "assist_nm": sy_assist}, method,
+                         bool(fit.success), points)

@@ -418,13 +418,17 @@ def _pre_identify_assist(tests: list[PreparedTest], p: np.ndarray, out: dict, co
     fit = eps_boost_curve.fit_boost_curve(powered, index, start, family)
     if fit is not None:
         out["values"].update(fit.values)
-        held = {n: fit.std_error[n] for n in fit.values if n.startswith("assist.")}
-        out["held"] = {**out.get("held", {}), **held}
         out["boost_curve"] = fit.record()
-        out["notes"].append(
-            f"assist curve of {', '.join(fit.points)} and active damping from the motor "
-            f"current against the torque sensor ({len(fit.tests)} powered tests, "
-            f"{fit.method}); the cascade holds them")
+        source = (f"assist curve of {', '.join(fit.points)} and active damping from the motor "
+                  f"current against the torque sensor ({len(fit.tests)} powered tests, "
+                  f"{fit.method})")
+        if fit.converged:
+            held = {n: fit.std_error[n] for n in fit.values if n.startswith("assist.")}
+            out["held"] = {**out.get("held", {}), **held}
+            out["notes"].append(f"{source}; the cascade holds them")
+        else:
+            # a regression that did not converge only starts the output-error stages
+            out["notes"].append(f"{source} did not converge: only a start for the cascade")
 
 
 # -------------------------------------------------------------------------------------
