@@ -202,7 +202,7 @@ def markdown(cfg: PlanConfig, res) -> str:
                                    for n, x in c["exponents"].items())
                 sig = f"{c['combination_relative_std']:.3g}"
             else:
-                combo, sig = "– (no partner: too little information on it alone)", "–"
+                combo, sig = "– (no partner above the target)", "–"
             lines.append(f"| `{c['parameter']}` | {c['relative_std']:.3g} | {partners} | "
                          f"{combo} | {sig} |")
     lines += ["", f"Planned: condition number {d['planned_identifiability']['condition_number']:.3g}"

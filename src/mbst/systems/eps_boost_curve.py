@@ -1,7 +1,7 @@
 """The assist curve from measured points: motor current against the torque sensor.
 
-With ``motor_current_a`` logged, a quasi-static powered test measures the
-assist directly: ``N·k_m·i = A(T_tb) − c_ad·ω_sw`` (eps-model.md), with the
+With ``motor_current_a`` logged, every powered test measures the assist law
+directly: ``N·k_m·i = A(T_tb) − c_ad·ω_sw`` (eps-model.md), with the
 torsion-bar torque ``T_tb = T_sw − F_col(ω_sw)`` from the torque sensor. The
 output-error fit instead compares the current with the twin's, whose
 torsion-bar torque comes from the smoothed measured angle: its noise (errors
@@ -10,12 +10,13 @@ slope at zero torque by −43 % on the compact powered bench.
 
 Here both sides are measured, each with white sensor noise of known level,
 and orthogonal distance regression (``odrpack``, ODRPACK95) weighs the error
-in the torque as well as in the current. Every mode's curve is fitted at
-once with what the points need beside it: the column's Coulomb and viscous
-friction and the torque offset (on the torque side: a 3 % error in the
-column's Coulomb term moved city c1 by 9 %), the current offset and the
-active damping at the slow tests' speeds (on the assist side). The curve is
-then held: the cascade fits the rest around it.
+in the torque as well as in the current. Every mode's curve and every speed's
+active damping are fitted at once with what the points need beside them: the
+column's Coulomb and viscous friction and the torque offset (on the torque
+side: a 3 % error in the column's Coulomb term moved city c1 by 9 %) and the
+current offset. The laws are the kernel's own (``assist_torque``, the column's
+``friction``). The curves and dampings are then held: the cascade fits the
+rest around them.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from scipy.optimize import least_squares
 
 from mbst.preprocess import white_noise_std
 from mbst.systems import eps_assist
+from mbst.systems import eps_kernel as K
 
 CURRENT = "motor_current_a"
 TORQUE = "steering_torque_nm"
@@ -95,8 +97,8 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
     if not used:
         return None
     g = lambda name: float(p[param_index[name]])  # noqa: E731
-    gain = g("worm_gear_ratio") * g("motor_torque_constant_nm_per_a")
-    v_eps = g("steering_column.regularisation_velocity_rad_per_s")
+    n_gear = g("worm_gear_ratio")
+    gain = n_gear * g("motor_torque_constant_nm_per_a")
     moving = {}
     for pt in used:
         w = np.abs(np.asarray(pt.omega_rad_per_s, float))
@@ -135,16 +137,32 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
         fc, visc, t_off, a_off = beta[nq * nm + ns:]
         return c, damping, fc, visc, t_off, a_off
 
+    # the kernel's own laws (one model definition): each (mode, speed) group runs on a
+    # vector with its curve and damping in the generic slots, as eps_assist.route does
+    groups = sorted({(int(m), int(v)) for m, v in zip(mode_of, speed_of, strict=True)})
+    masks = {g: (mode_of == g[0]) & (speed_of == g[1]) for g in groups}
+    base = np.array(p, dtype=np.float64, copy=True)
+    base[param_index["assist.family"]] = eps_assist.FAMILIES[family]
+    slots = [param_index[f"assist.{q}"] for q in qs]
+    i_cad, i_fc, i_visc = (param_index[n] for n in (f"assist.{eps_assist.DAMPING}",
+                                                     _COLUMN[0], _COLUMN[1]))
+
+    def torsion_bar_torque(torque: np.ndarray, w: np.ndarray, q: np.ndarray, t_off: float
+                           ) -> np.ndarray:
+        t = torque - t_off
+        return t - K.column_friction_along(w, np.abs(t), q)
+
     def assist_of(xx: np.ndarray, beta: np.ndarray) -> np.ndarray:
         c, damping, fc, visc, t_off, a_off = unpack(beta)
-        w = xx[1]
-        t_tb = xx[0] - t_off - fc * np.tanh(w / v_eps) - visc * w
-        s = np.sign(t_tb)
-        if family == "hps":
-            a = c[mode_of, 0] * s * np.expm1(np.abs(t_tb))
-        else:
-            a = c[mode_of, 0] * t_tb + c[mode_of, 1] * s * np.abs(t_tb) ** c[mode_of, 2]
-        return a - damping[speed_of] * w + a_off
+        out = np.empty(xx.shape[1])
+        for (m, v), sel in masks.items():
+            q = base.copy()
+            q[slots] = c[m]
+            q[i_cad], q[i_fc], q[i_visc] = damping[v], fc, visc
+            w = np.ascontiguousarray(xx[1][sel])
+            t_tb = torsion_bar_torque(xx[0][sel], w, q, t_off)
+            out[sel] = n_gear * K.assist_torque_along(t_tb, w, q)
+        return out + a_off
 
     lo = np.r_[np.tile([0.0, 0.0, 1.0][:nq], nm), np.zeros(ns), 0.0, 0.0, -5.0, -50.0]
     hi = np.r_[np.tile([20.0, 20.0, 4.0][:nq], nm), np.ones(ns), 1.0, 0.2, 5.0, 50.0]
@@ -179,11 +197,13 @@ def fit_boost_curve(tests: list, param_index: dict[str, int], p: np.ndarray,
     values["offset.motor_current_a"] = float(a_off / gain)
     nuisance = {n: float(v) for n, v in zip(_COLUMN, (fc, visc, t_off))}
 
+    q = base.copy()
+    q[i_fc], q[i_visc] = fc, visc
     points = {}
     for k, mode in enumerate(modes):
         sel = mode_of == k
-        w = x[1][sel]
-        t_tb = x[0][sel] - t_off - fc * np.tanh(w / v_eps) - visc * w
+        w = np.ascontiguousarray(x[1][sel])
+        t_tb = torsion_bar_torque(x[0][sel], w, q, t_off)
         a = y[sel] - a_off + damping[speed_of[sel]] * w
         points[mode] = (t_tb, a)
     return BoostCurveFit(values, std, nuisance, [pt.id for pt in used],

@@ -208,6 +208,28 @@ def assist_torque(t_tb, om_sw, p):
     return (a - p[P_CAD] * om_sw) / p[P_N]
 
 
+@njit(**_JIT)
+def column_friction_along(om_sw, load, p):
+    """The column's friction F_col(ω_sw) along a record (the law without a Dahl state).
+
+    What the measured torque carries above the torsion bar: the measured-points
+    regression of the assist (``eps_boost_curve``) takes it off with this law.
+    """
+    out = np.empty(om_sw.shape[0])
+    for i in range(om_sw.shape[0]):
+        out[i] = friction(p, B_COL, p[B_COL], p[B_COL + 1], om_sw[i], 0.0, load[i], 1.0)[0]
+    return out
+
+
+@njit(**_JIT)
+def assist_torque_along(t_tb, om_sw, p):
+    """``assist_torque`` along a record (motor side)."""
+    out = np.empty(t_tb.shape[0])
+    for i in range(t_tb.shape[0]):
+        out[i] = assist_torque(t_tb[i], om_sw[i], p)
+    return out
+
+
 # ---- the model ----------------------------------------------------------------------
 @njit(**_JIT)
 def rack_is_body(p):

@@ -317,11 +317,9 @@ def assist_points(on: PreparedTest, off: PreparedTest | None, p: np.ndarray,
     measured torque to get the torsion-bar torque.
     """
     g = lambda name: p[PARAM_INDEX[name]]
-    fc, veps = g("steering_column.coulomb_nm"), g(
-        "steering_column.regularisation_velocity_rad_per_s")
-    w = on.omega_rad_per_s
+    w = np.ascontiguousarray(on.omega_rad_per_s, dtype=np.float64)
     t_on = on.measured["steering_torque_nm"] - torque_offset_nm
-    t_tb = t_on - fc * np.tanh(w / veps) - g("steering_column.viscous_nms_per_rad") * w
+    t_tb = t_on - K.column_friction_along(w, np.abs(t_on), np.asarray(p, np.float64))
     moving = np.abs(w) > 0.05 * np.max(np.abs(w))
     if "motor_current_a" in on.measured:
         # the current carries A(T) − c_ad·ω: the test's own active damping goes back on
