@@ -45,6 +45,15 @@ from mbst.systems.model import ModelDefinition
 
 FORMAT = "mbst-discovery/1"
 
+# Two friction elements move as one body in a stage when their base-model speeds
+# correlate at least this well over its tests (motor and rack behind a stiff mesh)...
+TIE_SPEED_CORRELATION = 0.999
+# ...and the runner-up leaves at most this share of the stage's base cost more than the
+# best: then the data cannot say which of the two carries the effect. (A share of
+# the base cost, not a ratio of what is left: hidden asymmetric rack friction left
+# 0.70 % in the rack and 0.78 % in the motor, a ratio of 1.12, from one body.)
+TIE_GAIN = 0.01
+
 
 @dataclass
 class DiscoverSettings:
@@ -83,13 +92,17 @@ class Finding:
     relative_gain: float
     aic_delta: float | None  # None where the criterion is not the output error (stick-slip)
     cv: dict
+    # components the same effect could sit in as well: they move as one body with
+    # ``component`` in the stage's tests and explain the data alike
+    indistinguishable_from: list[str] = field(default_factory=list)
 
     def record(self) -> dict:
         return {"effect": self.effect, "component": self.component,
                 "parameters": self.parameters, "confidence": round(self.confidence, 4),
                 "evidence": self.evidence, "stage": self.stage,
                 "relative_gain": self.relative_gain, "aic_delta": self.aic_delta,
-                "cross_validation": self.cv}
+                "cross_validation": self.cv,
+                "indistinguishable_from": list(self.indistinguishable_from)}
 
 
 @dataclass
@@ -119,7 +132,8 @@ class DiscoveryResult:
                          "to the noise floor")
         for f in self.findings:
             pars = ", ".join(f"{k}={v:.4g}" for k, v in f.parameters.items())
-            lines.append(f"  found {f.effect} in {f.component} ({pars}), confidence "
+            where = " or ".join([f.component, *f.indistinguishable_from])
+            lines.append(f"  found {f.effect} in {where} ({pars}), confidence "
                          f"{f.confidence:.2f}")
         means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
         for m, v in means.items():
@@ -165,6 +179,35 @@ def akaike_weight(best: CandidateScore, scores: list[CandidateScore]) -> float:
     return float(w[same.index(best)] / w.sum())
 
 
+def tied_components(best: CandidateScore, scores: list[CandidateScore],
+                    residuals: dict[str, TestResidual], model: ModelDefinition
+                    ) -> list[tuple[CandidateScore, float]]:
+    """Candidates of ``best``'s effect that the stage cannot tell from it.
+
+    A runner-up counts when its component's speed follows ``best``'s in every
+    test of the stage (``model.element_speeds``, base model) and it leaves almost
+    the same cost: motor and rack friction seen through a rigid mesh are one
+    term at the pinion, and which of the two wins is then down to noise.
+    Returns ``(candidate, speed correlation)`` pairs.
+    """
+    speeds = model.element_speeds
+    tests = [residuals[t] for t in best.tests if t in residuals]
+    if best.component not in speeds or not tests:
+        return []
+    mine = np.concatenate([r.states[speeds[best.component]] for r in tests])
+    out = []
+    for s in scores:
+        if s is best or s.stage != best.stage or s.effect != best.effect or \
+                s.component not in speeds or s.cost - best.cost > TIE_GAIN * best.cost_base:
+            continue
+        theirs = np.concatenate([r.states[speeds[s.component]] for r in tests])
+        corr = float(np.corrcoef(mine, theirs)[0, 1]) if np.std(mine) * np.std(theirs) > 0 \
+            else 0.0
+        if abs(corr) >= TIE_SPEED_CORRELATION:
+            out.append((s, corr))
+    return out
+
+
 def cross_validate(scorer: StageScorer, cand: CandidateScore, p_base: np.ndarray,
                    nfev: int) -> dict:
     """Leave one test of the stage out: refit base and extension on the rest, score it."""
@@ -208,12 +251,18 @@ def _truth_params(campaign: Campaign, model: ModelDefinition) -> np.ndarray | No
 
 def _evidence(best: CandidateScore, runner: CandidateScore | None, cv: dict,
               regions: list[tuple[str, float]], sparse: dict | None,
-              neural: dict | None) -> str:
+              neural: dict | None, ties: list[tuple[CandidateScore, float]] = ()) -> str:
     parts = [
         f"structure test: inserting {best.effect} in {best.component} and refitting the "
         f"{best.stage} stage removed {100 * best.relative_gain:.1f} % of its residual cost "
         f"(ΔAIC {best.aic_delta:.0f} with {best.n_eff:.0f} effective samples)",
     ]
+    for s, corr in ties:
+        parts.append(
+            f"NOT DECIDED between {best.component} and {s.component}: they move as one body in "
+            f"the {best.stage} tests (speed correlation {corr:.5f}) and the same effect in "
+            f"{s.component} removed {100 * s.relative_gain:.1f} %; a test that moves one "
+            "without the other, or a sensor between them, would tell them apart")
     if runner is not None:
         parts.append(f"runner-up {runner.key} removed {100 * runner.relative_gain:.1f} % "
                      f"(ΔAIC {runner.aic_delta:.0f})")
@@ -267,7 +316,7 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     accepted: list[str] = []
     extra_free: dict[str, tuple[str, ...]] = {}
     rounds: list[dict] = []
-    pending: list[tuple[CandidateScore, CandidateScore | None, dict, float]] = []
+    pending: list[tuple[CandidateScore, CandidateScore | None, dict, float, list]] = []
     t0 = time.perf_counter()
     bar = _progress_bar(settings.progress)
     shortlist: set[str] | None = None
@@ -331,7 +380,8 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         accepted.append(best.key)
         extra_free = trial_free
         p, cost_cur = p_ext, cost_ext
-        pending.append((best, runner, cv, akaike_weight(best, scores)))
+        ties = tied_components(best, scores, {r.id: r for r in id_res}, model)
+        pending.append((best, runner, cv, akaike_weight(best, scores), ties))
     if bar is not None:
         bar.close()
     timings["structure_s"] = time.perf_counter() - t0
@@ -377,15 +427,16 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         timings["neural_s"] = time.perf_counter() - t0
 
     findings = []
-    for best, runner, cv, weight in pending:
+    for best, runner, cv, weight, ties in pending:
         spec = model.effects[best.key]
         params = {h: float(p[model.param_index[n]]) for h, n in spec.headline.items()}
         cv_frac = cv["wins"] / cv["folds"] if cv.get("folds") else 1.0
         findings.append(Finding(
             effect=spec.effect, component=spec.component, parameters=params,
             confidence=weight * cv_frac,
-            evidence=_evidence(best, runner, cv, regions, sparse_ev, neural_ev),
+            evidence=_evidence(best, runner, cv, regions, sparse_ev, neural_ev, ties),
             stage=best.stage, relative_gain=best.relative_gain, aic_delta=best.aic_delta, cv=cv,
+            indistinguishable_from=[s.component for s, _ in ties],
         ))
     if stick_finding is not None:
         findings.append(stick_finding)
@@ -682,7 +733,8 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines += ["| # | effect | component | parameters | confidence |", "|---|---|---|---|---|"]
         for i, f in enumerate(result.findings, 1):
             pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
-            lines.append(f"| {i} | {f.effect} | {f.component} | {pars} | {f.confidence:.2f} |")
+            where = " or ".join([f.component, *f.indistinguishable_from])
+            lines.append(f"| {i} | {f.effect} | {where} | {pars} | {f.confidence:.2f} |")
         lines += [""] + [f"- **{f.effect} / {f.component}**: {f.evidence}"
                          for f in result.findings]
     else:

@@ -523,5 +523,7 @@ EPS_MODEL = ModelDefinition(
     specialise=eps_assist.specialise,
     carry_through=("suspended",),
     evidence_methods=("sparse", "neural", "stick_slip"),
+    # the column's speed is the imposed input; the tires' has no internal signal
+    element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},
     report=lambda result, figdir: eps_assist_report.write(result, figdir),
 )

@@ -138,6 +138,11 @@ class ModelDefinition:
         (EMPS: the authors' IDIM force error on the moving samples), for rigs
         whose output-error fit has too high a floor to see part of the model;
         discovery then runs an equation-error round.
+    element_speeds
+        Friction element (component) → the base model's internal signal of its
+        speed (``TestResidual.states``). Discovery compares them to tell when
+        two components move as one body in a stage's tests, so that an effect
+        fitted in either explains the data alike and the finding says so.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -166,6 +171,7 @@ class ModelDefinition:
     carry_through: tuple[str, ...] = ()
     report: Callable[[Any, Any], list[str]] | None = None
     equation_error: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
+    element_speeds: dict[str, str] = field(default_factory=dict)
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 
