@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -382,12 +382,15 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         spec = model.effects[best.key]
         trial_free = dict(extra_free)
         trial_free[best.stage] = tuple(trial_free.get(best.stage, ())) + spec.free
-        p_ext, _, _, _, _ = run_cascade(campaign, ids_settings, base=best.params,
+        # two deliberate starts (the winner's fit and its reset variant) instead of the
+        # cascade's random restarts, which around a warm start only double the time
+        ext_settings = replace(ids_settings, multistart=1)
+        p_ext, _, _, _, _ = run_cascade(campaign, ext_settings, base=best.params,
                                         extra_free=trial_free)
         cost_ext, _ = total_cost(ids, p_ext, scales, ids_settings.decimate)
         start = _reset_extension_start(scorer, best, spec)
         if start is not None:
-            p_alt, _, _, _, _ = run_cascade(campaign, ids_settings, base=start,
+            p_alt, _, _, _, _ = run_cascade(campaign, ext_settings, base=start,
                                             extra_free=trial_free)
             cost_alt, _ = total_cost(ids, p_alt, scales, ids_settings.decimate)
             if cost_alt < cost_ext:
