@@ -67,10 +67,10 @@ DETECTED_FROM = {
 }
 
 
-def _run(tmp_path_factory, effects: list[str], seed: int = 1, **kw):
+def _run(tmp_path_factory, effects: list[str], seed: int = 1, plan=compact_plan, **kw):
     out = tmp_path_factory.mktemp("disc")
     camp = read_campaign(run_bench(out, BenchRecipe(effects=effects, seed=seed,
-                                                    plan=compact_plan())))
+                                                    plan=plan() if plan else None)))
     truth = json.loads((out / "truth.json").read_text())
     return camp, truth, discover(camp, DiscoverSettings(**{**SETTINGS, **kw}))
 
@@ -231,6 +231,29 @@ def test_hidden_effect_is_named(tmp_path_factory, key):
 ])
 def test_catalogue_effect_is_named(tmp_path_factory, key):
     _, truth, result = _run(tmp_path_factory, [key])
+    _assert_first_finding(result, key, truth)
+
+
+# The tires and tie-rod pairs need the demo plan's tires_on_ground tests (3-6 min each).
+# Measured 2026-11-23, seed 1: two strong effects clear the gain margin but not ΔAIC ≤ -100,
+# the tires stage's residual holding few effective samples.
+TIRES_MISSES = {
+    "stribeck_friction:tires": (
+        "39 % of the tires_on_ground cost but ΔAIC -75; the stick-slip envelope: 48 %, "
+        "under its margin"),
+    "asymmetric_friction:tires": "62 % of the tires_on_ground cost but ΔAIC -72",
+    "presliding_hysteresis:tires": "4.8 % of the tires_on_ground cost (ΔAIC -20)",
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("key", [
+    pytest.param(e.key, marks=pytest.mark.xfail(reason=TIRES_MISSES[e.key], strict=True))
+    if e.key in TIRES_MISSES else e.key
+    for e in EFFECT_CATALOGUE if not stage_for(e, {"blocked_column", "free_tie_rods"}, EPS_MODEL)
+])
+def test_tires_effect_is_named_on_the_demo_plan(tmp_path_factory, key):
+    _, truth, result = _run(tmp_path_factory, [key], plan=None)
     _assert_first_finding(result, key, truth)
 
 
