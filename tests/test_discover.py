@@ -60,8 +60,8 @@ KNOWN_MISSES = {
         "blocked-column cost (ΔAIC -7) and is too small to stick-slip; at F_s/F_c = 3 it is "
         "named (test_known_miss_is_named_at_a_larger_size)"),
 }
-# The smallest size (on the spec's grid of values tried) at which a KNOWN_MISSES pair is
-# named on the compact plan: the candidate works, the realistic size is below the noise.
+# A size at which a KNOWN_MISSES pair is named on the compact plan (the smallest of those
+# tried: F_s/F_c 3 and 4): the candidate works, the realistic size is below the noise.
 DETECTED_FROM = {
     "stribeck_friction:steering_column": "static_to_coulomb_ratio=3",
 }

@@ -46,7 +46,9 @@ def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
                 if pt.id in tw and ch in tw[pt.id]:
                     ax.plot(pt.time_s[sl], s * tw[pt.id][ch][sl], label=name,
                             **MODEL_STYLE.get(name, {}))
-            ax.axvline(pt.time_s[worst], color="0.6", lw=0.8, ls=":")
+            # a solid, pale marker: the true model is drawn dotted grey
+            ax.axvline(pt.time_s[worst], color="tab:blue", alpha=0.35, lw=0.8,
+                       label="reversal")
             plots._style(ax, f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", LABELS[ch])
     plots._finish(fig, axes, path)
 
