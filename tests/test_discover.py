@@ -235,15 +235,18 @@ def test_catalogue_effect_is_named(tmp_path_factory, key):
 
 
 # The tires and tie-rod pairs need the demo plan's tires_on_ground tests (3-6 min each).
-# Measured 2026-11-23, seed 1: two strong effects clear the gain margin but not ΔAIC ≤ -100,
-# the tires stage's residual holding few effective samples.
+# Measured 2026-11-23, seed 1, with the structure test freeing what the cascade frees in
+# the tires stage (the tie-rod force offsets first measured there, the tie-rod stiffness
+# and damping carried from the skipped blocked_rack stage).
 TIRES_MISSES = {
     "stribeck_friction:tires": (
-        "39 % of the tires_on_ground cost but ΔAIC -75; the stick-slip envelope: 48 %, "
-        "under its margin"),
-    "asymmetric_friction:tires": "62 % of the tires_on_ground cost but ΔAIC -72",
-    "presliding_hysteresis:tires": "4.8 % of the tires_on_ground cost (ΔAIC -20)",
+        "39 % of the tires_on_ground cost (ΔAIC -72) where the true model removes 99.99 %: "
+        "the refit stops in a sticking basin (ratio 1.30 for 1.8); the stick-slip envelope "
+        "48 %, under its margin"),
 }
+# the headline the finding must carry within 20 % (the tie-rod Coulomb level is shared
+# with the tires' own: 77 N for a true 150 N, so it is not checked)
+TIRES_SIZED = {"asymmetric_friction:tires": "ratio", "power_law_damping:tires": "exponent"}
 
 
 @pytest.mark.slow
@@ -255,6 +258,10 @@ TIRES_MISSES = {
 def test_tires_effect_is_named_on_the_demo_plan(tmp_path_factory, key):
     _, truth, result = _run(tmp_path_factory, [key], plan=None)
     _assert_first_finding(result, key, truth)
+    if key in TIRES_SIZED:
+        name = TIRES_SIZED[key]
+        true_value = truth["effects"][0]["parameters"][name]
+        assert result.findings[0].parameters[name] == pytest.approx(true_value, rel=0.2)
 
 
 @pytest.mark.slow
@@ -415,3 +422,27 @@ def test_base_refit_also_starts_from_the_reset_parameters(backlash):
     cost_fitted = plain.costs(fitted[None]).sum()
     assert plain.base_refit()[1] > 1.05 * cost_fitted
     assert with_reset.base_refit()[1] < 1.03 * cost_fitted
+
+
+@pytest.mark.parametrize("quick_cost, expected_runs", [(0.9, [1]), (1.1, [1, 3])])
+def test_extension_falls_back_to_the_cascade_restarts(monkeypatch, quick_cost, expected_runs):
+    """The quick extension (deliberate starts only) stands when it lowers the cost;
+    otherwise the cascade runs again with its own restarts and that result counts.
+
+    (The powered backlash case needs the fallback; it is slow, so the branch is
+    checked here with a stand-in cascade.)
+    """
+    from mbst.identify import IdentifySettings
+
+    runs: list[int] = []
+
+    def cascade(campaign, settings, ids, scales, starts, extra_free):
+        runs.append(settings.multistart)
+        cost = quick_cost if settings.multistart == 1 else 0.5
+        return np.full(2, float(settings.multistart)), cost
+
+    monkeypatch.setattr(pipeline_mod, "_extended_cascade", cascade)
+    p, cost = pipeline_mod._extend(None, IdentifySettings(multistart=3), [], {}, [None], {}, 1.0)
+    assert runs == expected_runs
+    assert cost == (0.9 if expected_runs == [1] else 0.5)
+    assert p[0] == expected_runs[-1]
