@@ -255,4 +255,3 @@ def test_angle_noise_does_not_bias_the_column_friction(tmp_path):
     p, *_ = run_cascade(camp, IdentifySettings(), base=truth, only=only)
     i = PARAM_INDEX["steering_column.coulomb_nm"]
     assert p[i] == pytest.approx(truth[i], rel=0.05)
-
