@@ -476,3 +476,23 @@ def test_tires_candidates_refit_the_offsets_the_cascade_frees(tmp_path):
         gains[label] = scorer.score(spec, 1000.0).relative_gain
     assert gains["cascade"] > 0.99, gains  # measured 99.98 %
     assert gains["isolated"] < 0.8, gains  # measured 47.6 %: the offsets hold the mean force
+
+
+def test_extension_keeps_its_start_when_the_cascade_ends_worse(monkeypatch):
+    """A start is already a complete extended model; a cascade that ends in a worse basin
+    from it must not cost the finding (the powered backlash case: start 0.00163, cascade
+    0.00762 against the base's 0.00413)."""
+    from mbst.identify import IdentifySettings
+
+    def cascade(campaign, settings, base, extra_free):
+        return base + 1.0, [], {}, [], {}  # the cascade moves every parameter
+
+    def cost(ids, p, scales, decimate=2):
+        return float(p[0]), []  # the moved vector costs more than its start
+
+    monkeypatch.setattr(pipeline_mod, "run_cascade", cascade)
+    monkeypatch.setattr(pipeline_mod, "total_cost", cost)
+    start = np.array([0.3, 7.0])
+    p, c = pipeline_mod._extended_cascade(None, IdentifySettings(), [], {}, [start, None], {})
+    np.testing.assert_array_equal(p, start)
+    assert c == 0.3
