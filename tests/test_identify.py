@@ -255,28 +255,3 @@ def test_angle_noise_does_not_bias_the_column_friction(tmp_path):
     p, *_ = run_cascade(camp, IdentifySettings(), base=truth, only=only)
     i = PARAM_INDEX["steering_column.coulomb_nm"]
     assert p[i] == pytest.approx(truth[i], rel=0.05)
-
-
-def test_offset_columns_of_the_jacobian_match_simulated_differences(tmp_path):
-    """Offset columns come without a simulation; they must equal the simulated ones."""
-    from dataclasses import replace
-
-    from mbst.bench import compact_plan
-    from mbst.fitting import FitProblem, prepare_test
-
-    recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())
-    camp = read_campaign(run_bench(tmp_path, recipe))
-    tests = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()[:3]]
-    free = ["torsion_bar.stiffness_nm_per_rad", "offset.steering_torque_nm",
-            "rack.coulomb_n", "offset.rack_position_m", "offset.tie_rod_force_left_n"]
-    p = recipe.true_params()
-    scales = channel_scales(tests)
-    prob = FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p, scales,
-                      decimate=2)
-    u = prob.u_of(p)
-    assert set(free[1::2] + free[4:]) <= set(prob.model.offset_channels)
-    fast = prob.jacobian(u)
-    prob.model = replace(prob.model, offset_channels={})  # every column simulated
-    slow = prob.jacobian(u)
-    assert np.abs(fast[:, [1, 3]]).max() > 0  # the offsets do show
-    np.testing.assert_allclose(fast, slow, rtol=1e-6, atol=1e-9 * np.abs(slow).max())

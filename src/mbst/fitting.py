@@ -245,33 +245,20 @@ class FitProblem:
         return np.where(np.isfinite(r), r, 1e6)
 
     def jacobian(self, u: np.ndarray) -> np.ndarray:
-        """Forward differences, all perturbations of a test simulated in one batch.
-
-        A sensor offset adds to its channel before the filter, and the filter
-        (started at the first sample) passes a constant unchanged: its column
-        needs no simulation.
-        """
+        """Forward differences, all perturbations of a test simulated in one batch."""
         h = 1e-5 * np.maximum(1.0, np.abs(u))
         # step away from the nearer bound so the perturbed point stays feasible
         sgn = np.where(u + h > self.ub, -1.0, 1.0)
         us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in range(len(u))]
         ps = np.stack([self.p_of(v) for v in us])
-        offsets = self.model.offset_channels
-        shift = {j: offsets[n] for j, n in enumerate(self.free) if n in offsets}
-        rows = [0] + [j + 1 for j in range(len(u)) if j not in shift]
         cols = []
         for pt in self.tests:
-            twins = dict(zip(rows, _twins_batch(pt, ps[rows]), strict=True))
-            for j, ch in shift.items():
-                twin = dict(twins[0])
-                if ch in twin:
-                    twin[ch] = twin[ch] + (ps[j + 1, self.idx[j]] - ps[0, self.idx[j]])
-                twins[j + 1] = twin
+            twins = _twins_batch(pt, ps)
             r0 = self._res_of_twin(pt, twins[0])
             cols.append(np.stack(
                 [(self._res_of_twin(pt, twins[j + 1]) - r0) / (sgn[j] * h[j])
                  for j in range(len(u))], axis=1))
-        self.n_eval += len(rows)
+        self.n_eval += len(us)
         cols.append(np.diag(self.prior_w))
         jac = np.concatenate(cols, axis=0)
         return np.where(np.isfinite(jac), jac, 0.0)
