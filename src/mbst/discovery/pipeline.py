@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -359,14 +360,34 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     t0 = time.perf_counter()
     base = _identify_base(campaign, ids_settings)
     timings["identify_s"] = time.perf_counter() - t0
-    prepared = base.prepared
     model = base.model
-    id_specs = campaign.identification_tests()
-    ids = [prepared[s.id] for s in id_specs]
-    scales = channel_scales(ids)
-    id_res = [residual_data(prepared[s.id], base.params, base.twins.get(s.id)) for s in id_specs]
+    id_res = [residual_data(base.prepared[s.id], base.params, base.twins.get(s.id))
+              for s in campaign.identification_tests()]
     locations = residual_locations(id_res)
     regions = dominant_regions(locations)
+    # the network needs only the base residuals: it trains on one torch thread beside
+    # the structure test, which leaves the second core idle between its refits
+    neural_pool = neural_job = None
+    if settings.neural and "neural" in model.evidence_methods:
+        neural_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mbst-neural")
+        neural_job = neural_pool.submit(_neural_evidence, id_res, settings)
+    try:
+        return _discover_from_base(campaign, settings, base, id_res, locations, regions,
+                                   neural_job, timings, t_start)
+    finally:
+        if neural_pool is not None:
+            neural_pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _discover_from_base(campaign: Campaign, settings: DiscoverSettings, base: IdentifyResult,
+                        id_res: list[TestResidual], locations: list[dict], regions: list,
+                        neural_job: Future | None, timings: dict[str, float],
+                        t_start: float) -> DiscoveryResult:
+    ids_settings = settings.identify
+    prepared = base.prepared
+    model = base.model
+    ids = [prepared[s.id] for s in campaign.identification_tests()]
+    scales = channel_scales(ids)
 
     stage_params = [n for _, names in model.cascade for n in names]
     cascade_free = {st.scenario: list(st.free) for st in base.stages}
@@ -485,10 +506,11 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
         t0 = time.perf_counter()
         sparse_ev = _sparse_evidence(id_res)
         timings["sparse_s"] = time.perf_counter() - t0
-    if settings.neural and "neural" in model.evidence_methods:
+    if neural_job is not None:
         t0 = time.perf_counter()
-        neural_model, neural_ev = _neural_evidence(id_res, settings)
-        timings["neural_s"] = time.perf_counter() - t0
+        neural_model, neural_ev = neural_job.result()
+        timings["neural_s"] = neural_ev.get("train_seconds") or 0.0
+        timings["neural_wait_s"] = time.perf_counter() - t0
 
     findings = []
     for best, runner, cv, weight, ties in pending:
