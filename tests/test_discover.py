@@ -77,32 +77,32 @@ def _run(tmp_path_factory, effects: list[str], seed: int = 1, plan=compact_plan,
 
 @pytest.fixture(scope="module")
 def backlash(tmp_path_factory):
-    """The worm-gear backlash case, with every simulated test id recorded in order."""
-    import mbst.discovery.structure as structure_mod
+    """The worm-gear backlash case, with every simulated test id recorded in order.
+
+    Every simulation of identification and discovery goes through
+    ``fitting.twins_of_tests``; the spy replaces it wherever a module holds it.
+    """
+    import sys
+
     import mbst.fitting as fitting_mod
-    import mbst.identify as identify_mod
 
     seen: list[str] = []
-    real_batch, real_twin = fitting_mod._twins_batch, fitting_mod.simulate_twin
-    real_compare = pipeline_mod._compare
+    real_twins, real_compare = fitting_mod.twins_of_tests, pipeline_mod._compare
 
-    def spy_batch(pt, ps):
-        seen.append(pt.id)
-        return real_batch(pt, ps)
-
-    def spy_twin(pt, p):
-        seen.append(pt.id)
-        return real_twin(pt, p)
+    def spy_twins(pts, pss):
+        seen.extend(pt.id for pt in pts)
+        return real_twins(pts, pss)
 
     def spy_compare(*a, **k):
         seen.append("COMPARE")
         return real_compare(*a, **k)
 
+    holders = [m for name, m in list(sys.modules.items()) if name.startswith("mbst.")
+               and getattr(m, "twins_of_tests", None) is real_twins]
+    assert fitting_mod in holders and len(holders) >= 4  # fitting, identify, structure, ...
     with pytest.MonkeyPatch.context() as mp:
-        for mod in (pipeline_mod, structure_mod, fitting_mod):
-            mp.setattr(mod, "_twins_batch", spy_batch)
-        for mod in (fitting_mod, identify_mod):
-            mp.setattr(mod, "simulate_twin", spy_twin)
+        for mod in holders:
+            mp.setattr(mod, "twins_of_tests", spy_twins)
         mp.setattr(pipeline_mod, "_compare", spy_compare)
         camp, truth, result = _run(tmp_path_factory, ["backlash:worm_gear"])
     result.simulated_ids = seen

@@ -26,8 +26,8 @@ from mbst.fitting import (
     PreparedTest,
     channel_scales,
     prepare_test,
-    simulate_twin,
     solve,
+    twins_of_tests,
 )
 from mbst.metrics import correlation_row
 from mbst.outputs import atomic_output_dir, write_json, write_markdown
@@ -284,8 +284,7 @@ def correlate(
 ) -> tuple[pd.DataFrame, dict[str, dict[str, np.ndarray]]]:
     """Per test and channel metrics of the model ``p`` (filtered sim vs filtered data)."""
     rows, twins = [], {}
-    for pt in tests:
-        tw = simulate_twin(pt, p)
+    for pt, (tw,) in zip(tests, twins_of_tests(tests, [p[None]] * len(tests)), strict=True):
         twins[pt.id] = tw
         for ch, y in pt.measured.items():
             rows.append({"test": pt.id, "channel": ch, **correlation_row(y, tw[ch])})

@@ -38,7 +38,7 @@ from mbst.discovery.structure import (
     effective_samples,
     structure_test,
 )
-from mbst.fitting import PreparedTest, _twins_batch, channel_scales, solve
+from mbst.fitting import PreparedTest, channel_scales, solve, twins_of_tests
 from mbst.identify import IdentifyResult, IdentifySettings, correlate, run_cascade
 from mbst.metrics import fit_percent
 from mbst.outputs import atomic_output_dir, write_json, write_markdown
@@ -152,8 +152,7 @@ def total_cost(tests: list[PreparedTest], p: np.ndarray, scales: dict[str, float
                decimate: int = 2) -> tuple[float, list[np.ndarray]]:
     """Weighted data cost of ``p`` on ``tests`` (as the cascade weighs it) and the residuals."""
     cost, res = 0.0, []
-    for pt in tests:
-        tw = _twins_batch(pt, p[None])[0]
+    for pt, (tw,) in zip(tests, twins_of_tests(tests, [p[None]] * len(tests)), strict=True):
         n = len(pt.time_s[::decimate])
         for ch in pt.measured:
             r = (tw[ch] - pt.measured[ch])[::decimate]

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mbst.fitting import FitProblem, PreparedTest, _twins_batch, solve
+from mbst.fitting import FitProblem, PreparedTest, solve, twins_of_tests
 from mbst.systems.model import EffectSpec, ModelDefinition
 
 # Starting grid of each headline parameter, as multiples of the catalogue's realistic size
@@ -201,6 +201,7 @@ class StageScorer:
         self.reset = {n: v for n, v in (reset or {}).items()
                       if n in self.stage_free and not n.startswith("offset.")}
         self._base_fit: tuple[np.ndarray, float] | None = None
+        self._base_per_test: np.ndarray | None = None
 
     def problem(self, free: list[str], p0: np.ndarray,
                 tests: list[PreparedTest] | None = None) -> FitProblem:
@@ -212,14 +213,25 @@ class StageScorer:
     def costs(self, ps: np.ndarray, tests: list[PreparedTest] | None = None
               ) -> np.ndarray:
         """Data cost (no prior) of many parameter vectors, per test; shape (len(ps), tests)."""
+        return self._evaluate(ps, tests)[0]
+
+    def _evaluate(self, ps: np.ndarray, tests: list[PreparedTest] | None = None,
+                  residuals: bool = False) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Per-test costs of each row of ``ps`` and, with ``residuals``, the unweighted
+        residual blocks of the first row (what ``effective_samples`` reads)."""
         tests = tests if tests is not None else self.tests
         prob = self.problem(self.stage_free, self.base, tests)
         out = np.zeros((len(ps), len(tests)))
-        for j, pt in enumerate(tests):
-            for i, tw in enumerate(_twins_batch(pt, ps)):
+        blocks = []
+        for j, (pt, twins) in enumerate(zip(tests, twins_of_tests(tests, [ps] * len(tests)),
+                                            strict=True)):
+            for i, tw in enumerate(twins):
                 r = prob._res_of_twin(pt, tw)
                 out[i, j] = 0.5 * float(r @ r) if np.all(np.isfinite(r)) else np.inf
-        return out
+                if residuals and i == 0:
+                    blocks += [(tw[ch] - pt.measured[ch])[:: prob.decimate]
+                               for ch in pt.measured]
+        return out, blocks
 
     def reset_start(self, p: np.ndarray) -> np.ndarray:
         """``p`` with the compensating parameters back at their typical values."""
@@ -243,17 +255,12 @@ class StageScorer:
             starts = [self.base] + ([self.reset_start(self.base)] if self.reset else [])
             fr = solve(prob, starts, max_nfev=self.max_nfev)
             p = fr.p
-            self._base_fit = (p, float(self.costs(p[None])[0].sum()))
+            self._base_per_test = self.costs(p[None])[0]
+            self._base_fit = (p, float(self._base_per_test.sum()))
         return self._base_fit
 
     def residual_n_eff(self, p: np.ndarray) -> float:
-        prob = self.problem(self.stage_free, p)
-        res = []
-        for pt, tw in zip(self.tests, [_twins_batch(pt, p[None])[0] for pt in self.tests],
-                          strict=True):
-            for ch in pt.measured:
-                res.append(((tw[ch] - pt.measured[ch]))[:: prob.decimate])
-        return effective_samples(res)
+        return effective_samples(self._evaluate(p[None], residuals=True)[1])
 
     def score(self, spec: EffectSpec, n_eff: float, max_nfev: int | None = None,
               start: CandidateScore | None = None) -> CandidateScore:
@@ -289,8 +296,9 @@ class StageScorer:
         free = list(spec.free) + self.stage_free
         prob = self.problem(free, p_base)
         fr = solve(prob, starts, max_nfev=max_nfev or self.max_nfev)
-        per_test = self.costs(fr.p[None])[0]
-        per_test_base = self.costs(p_base[None])[0]
+        costs, blocks = self._evaluate(fr.p[None], residuals=True)
+        per_test = costs[0]
+        per_test_base = self._base_per_test
         cost = float(per_test.sum())
         p_fit, fell_back = fr.p, not cost <= cost_base
         if fell_back:
@@ -301,7 +309,7 @@ class StageScorer:
         if cost < cost_base:
             # F-test convention: the noise and its colour are read from the fuller model's
             # residual; the base residual is coloured by the very effect that is missing
-            n_eff = self.residual_n_eff(fr.p)
+            n_eff = effective_samples(blocks)
         return CandidateScore(
             key=spec.key, effect=spec.effect, component=spec.component, stage=self.stage,
             tests=[pt.id for pt in self.tests], free=free, k_effect=len(spec.free),

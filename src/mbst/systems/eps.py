@@ -146,7 +146,7 @@ def initial_state(p: np.ndarray, scenario: str, theta0: float) -> np.ndarray:
     return x
 
 
-def _codes(scenario: str, motor: str) -> tuple[int, int]:
+def scenario_codes(scenario: str, motor: str) -> tuple[int, int]:
     try:
         return K.SCENARIO_CODES[scenario], K.MOTOR_CODES[motor]
     except KeyError as exc:
@@ -172,7 +172,7 @@ def simulate_raw(
         else np.ascontiguousarray(angular_velocity_rad_per_s, dtype=np.float64)
     )
     dt = float((t[-1] - t[0]) / (len(t) - 1))
-    scen, mode = _codes(scenario, motor)
+    scen, mode = scenario_codes(scenario, motor)
     ns = substeps(p, scenario, dt) if n_sub is None else int(n_sub)
     x0 = initial_state(p, scenario, float(th[0]))
     return K.simulate_dt(th, om, p, scen, mode, ns, x0, dt)
@@ -192,7 +192,7 @@ def simulate_raw_batch(
     The step is the finest any of the vectors needs unless ``n_sub`` is given.
     """
     ps = np.ascontiguousarray(np.atleast_2d(ps), dtype=np.float64)
-    scen, mode = _codes(scenario, motor)
+    scen, mode = scenario_codes(scenario, motor)
     ns = max(substeps(p, scenario, dt_s) for p in ps) if n_sub is None else int(n_sub)
     x0s = np.stack([initial_state(p, scenario, float(angle_rad[0])) for p in ps])
     return K.simulate_batch(np.ascontiguousarray(angle_rad, dtype=np.float64),
@@ -273,7 +273,7 @@ def rhs_for(
     om = angular_velocity(t, th) if angular_velocity_rad_per_s is None else np.asarray(
         angular_velocity_rad_per_s, dtype=np.float64
     )
-    scen, mode = _codes(scenario, motor)
+    scen, mode = scenario_codes(scenario, motor)
 
     def f(tt: float, x: np.ndarray) -> np.ndarray:
         dx = np.empty(K.N_STATES)
@@ -299,7 +299,7 @@ def outputs_along(
     om = angular_velocity(t, th) if angular_velocity_rad_per_s is None else np.asarray(
         angular_velocity_rad_per_s, dtype=np.float64
     )
-    scen, mode = _codes(scenario, motor)
+    scen, mode = scenario_codes(scenario, motor)
     raw = np.empty((len(t), K.N_OUTPUTS))
     force, aux, row = np.zeros(4), np.zeros(7), np.empty(K.N_OUTPUTS)
     for i in range(len(t)):

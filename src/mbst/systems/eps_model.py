@@ -19,6 +19,7 @@ from mbst.systems import eps_kernel as K
 from mbst.systems.eps_channels import OUTPUT_CHANNELS, SYSTEM_NAME
 from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, PARAM_SPECS
 from mbst.systems.model import ModelDefinition
+from mbst.threads import run_longest_first
 
 if TYPE_CHECKING:
     from mbst.campaign import Campaign
@@ -461,18 +462,57 @@ def twin_params(ps: np.ndarray, rate_noise_rad_per_s: float) -> np.ndarray:
     return ps
 
 
+def _kernel_params(pt, ps: np.ndarray) -> np.ndarray:
+    """The vectors the kernel runs for a test: its assist routed, the twin's column switch."""
+    return twin_params(eps_assist.route(pt.model, pt.spec, np.atleast_2d(ps)),
+                       float(pt.inputs.get("rate_noise_rad_per_s", 0.0)))
+
+
+def row_steps(pt, ps: np.ndarray) -> np.ndarray:
+    """Sub-steps per sample each row needs; a batch runs at the largest (``simulate_batch``)."""
+    return np.array([eps.substeps(p, pt.scenario, pt.dt_s) for p in _kernel_params(pt, ps)])
+
+
+def _channels(pt, raw: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:
+    sens = eps.sensors_from_raw(raw, p, pt.scenario)
+    for i, name in enumerate(K.OUTPUT_NAMES):
+        sens[f"internal.{name}"] = raw[:, i]
+    return sens
+
+
 def simulate_batch(pt, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Simulate many parameter vectors on one test in parallel (numba prange)."""
-    ps = twin_params(eps_assist.route(pt.model, pt.spec, np.atleast_2d(ps)),
-                     float(pt.inputs.get("rate_noise_rad_per_s", 0.0)))
+    ps = _kernel_params(pt, ps)
     raw = eps.simulate_raw_batch(pt.scenario, pt.spec.motor, pt.input_signal, pt.input_rate, ps,
                                  pt.dt_s)
-    out = []
-    for k in range(len(ps)):
-        sens = eps.sensors_from_raw(raw[k], ps[k], pt.scenario)
-        for i, name in enumerate(K.OUTPUT_NAMES):
-            sens[f"internal.{name}"] = raw[k][:, i]
-        out.append(sens)
+    return [_channels(pt, raw[k], ps[k]) for k in range(len(ps))]
+
+
+def simulate_tests(pts: list, pss: list[np.ndarray]) -> list[list[dict[str, np.ndarray]]]:
+    """Several tests, each with its own rows: one flat set of (test, row) simulations.
+
+    Every row of a test runs at the sub-steps the finest of that test's rows needs,
+    as in ``simulate_batch``, so the numbers are the same as test by test; the
+    single-row kernel releases the GIL and the rows share the cores longest first.
+    """
+    jobs, costs, where, rows = [], [], [], []
+    for t, (pt, ps) in enumerate(zip(pts, pss, strict=True)):
+        kp = _kernel_params(pt, ps)
+        n_sub = max(eps.substeps(p, pt.scenario, pt.dt_s) for p in kp)
+        scen, mode = eps.scenario_codes(pt.scenario, pt.spec.motor)
+        angle = np.ascontiguousarray(pt.input_signal, dtype=np.float64)
+        rate = np.ascontiguousarray(pt.input_rate, dtype=np.float64)
+        for k, p in enumerate(kp):
+            x0 = eps.initial_state(p, pt.scenario, float(angle[0]))
+            jobs.append(lambda a=angle, w=rate, p=p, s=scen, m=mode, n=n_sub, x0=x0, dt=pt.dt_s:
+                        K.simulate_dt(a, w, p, s, m, n, x0, dt))
+            costs.append(len(angle) * n_sub)
+            where.append((t, k))
+        rows.append(kp)
+    raws = run_longest_first(jobs, costs)
+    out: list[list[dict[str, np.ndarray]]] = [[None] * len(kp) for kp in rows]
+    for (t, k), raw in zip(where, raws, strict=True):
+        out[t][k] = _channels(pts[t], raw, rows[t][k])
     return out
 
 
@@ -512,6 +552,8 @@ EPS_MODEL = ModelDefinition(
     offset_channels=OFFSET_CHANNEL,
     output_channels=OUTPUT_CHANNELS,
     simulate_batch=simulate_batch,
+    simulate_tests=simulate_tests,
+    row_steps=row_steps,
     prepare_inputs=prepare_inputs,
     pre_identify=pre_identify,
     carries_over=_carries_over,

@@ -138,6 +138,18 @@ class ModelDefinition:
         (EMPS: the authors' IDIM force error on the moving samples), for rigs
         whose output-error fit has too high a floor to see part of the model;
         discovery then runs an equation-error round.
+    simulate_tests
+        ``simulate_tests(prepared_tests, ps_per_test) -> rows per test``: several
+        tests at once, each with its own parameter rows, the same numbers as
+        ``simulate_batch`` test by test but spread over the cores as one set of
+        simulations (``mbst.threads``). ``None``: test by test.
+    row_steps
+        ``row_steps(prepared_test, ps) -> int array``: the integration steps each
+        row of ``ps`` needs on the test, where ``simulate_batch`` runs a whole batch
+        at the finest of its rows (the EPS rig's sub-steps). A row then gives the
+        same numbers alone as in a batch only when its count equals the batch's,
+        and the fitter reuses a simulation only then. ``None``: rows are
+        independent (a fixed step).
     element_speeds
         Friction element (component) → the base model's internal signal of its
         speed (``TestResidual.states``). Discovery compares them to tell when
@@ -172,6 +184,8 @@ class ModelDefinition:
     report: Callable[[Any, Any], list[str]] | None = None
     equation_error: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
     element_speeds: dict[str, str] = field(default_factory=dict)
+    simulate_tests: Callable[[list, list[np.ndarray]], list[list[dict]]] | None = None
+    row_steps: Callable[[Any, np.ndarray], np.ndarray] | None = None
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 

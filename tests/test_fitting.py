@@ -1,0 +1,115 @@
+"""The fitter's simulations: spread over the cores, reused, and still the same numbers.
+
+Identification and discovery are pure functions of the data and the seed; the
+way simulations are shared between threads, or a simulation reused, must not
+move a single bit of a residual or a Jacobian.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import mbst.fitting as fitting_mod
+from mbst.bench import BenchRecipe, compact_plan, run_bench
+from mbst.campaign import read_campaign
+from mbst.fitting import FitProblem, channel_scales, prepare_test, twins_of_tests
+from mbst.systems import eps
+
+
+@pytest.fixture(scope="module")
+def tests_and_truth(tmp_path_factory):
+    recipe = BenchRecipe(effects=["backlash:worm_gear"], seed=3, plan=compact_plan())
+    camp = read_campaign(run_bench(tmp_path_factory.mktemp("fit"), recipe))
+    tests = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()]
+    return tests, recipe.true_params()
+
+
+def _rows(model, p, names, factors):
+    ps = np.repeat(p[None], len(factors), axis=0)
+    for i, f in enumerate(factors):
+        for n in names:
+            ps[i, model.param_index[n]] *= f
+    return ps
+
+
+def test_tests_simulated_together_equal_test_by_test(tests_and_truth):
+    """One flat set of (test, row) jobs on the threads gives each test's batch bitwise,
+    also where the rows need different sub-steps (the batch runs at the finest)."""
+    tests, p = tests_and_truth
+    model = tests[0].model
+    # a stiffer gear needs more sub-steps: the rows of one test differ in their step
+    ps = _rows(model, p, ["worm_gear.stiffness_nm_per_rad"], [1.0, 4.0, 0.5])
+    steps = [model.row_steps(pt, ps) for pt in tests if pt.scenario == "free_tie_rods"]
+    assert any(len(set(n)) > 1 for n in steps), steps  # the case the test is about
+    together = twins_of_tests(tests, [ps] * len(tests))
+    for pt, rows in zip(tests, together, strict=True):
+        alone = model.simulate_batch(pt, ps)
+        for got, want in zip(rows, alone, strict=True):
+            for ch in pt.measured:
+                filtered = fitting_mod.exponential_filter(want[ch], pt.dt_s, pt.tau_s)
+                np.testing.assert_array_equal(got[ch], filtered)
+
+
+def _problem(tests, p):
+    free = ["worm_gear.stiffness_nm_per_rad", "worm_gear.damping_nms_per_rad",
+            "rack.coulomb_n", "motor.coulomb_nm"]
+    stage = [pt for pt in tests if pt.scenario == "free_tie_rods"]
+    return FitProblem(stage, {pt.id: list(pt.measured) for pt in stage}, free, p,
+                      channel_scales(tests), decimate=2)
+
+
+def test_jacobian_reuses_the_residual_evaluation_bitwise(tests_and_truth, monkeypatch):
+    tests, p = tests_and_truth
+    prob = _problem(tests, p)
+    u = prob.u_of(p) * 1.01
+    fresh = prob.jacobian(u)  # nothing evaluated yet: the point is simulated in the batch
+    rows_seen: list[int] = []
+    real = fitting_mod.twins_of_tests
+
+    def spy(pts, pss):
+        rows_seen.extend(len(ps) for ps in pss)
+        return real(pts, pss)
+
+    monkeypatch.setattr(fitting_mod, "twins_of_tests", spy)
+    prob.residuals(u)
+    rows_seen.clear()
+    reused = prob.jacobian(u)
+    assert rows_seen == [len(prob.free)] * len(prob.tests)  # one simulation fewer per test
+    np.testing.assert_array_equal(reused, fresh)
+    prob.residuals(u * 1.001)  # another point: nothing to reuse at u
+    rows_seen.clear()
+    np.testing.assert_array_equal(prob.jacobian(u), fresh)
+    assert rows_seen == [len(prob.free) + 1] * len(prob.tests)
+
+
+@pytest.mark.parametrize("steps, reused", [
+    ((4, 4, 4, 4, 4), True),
+    ((4, 4, 5, 4, 4), False),  # a perturbed row needs more: the batch of all runs finer
+    ((5, 4, 4, 4, 4), False),  # the point needs more than the perturbations alone
+])
+def test_the_point_is_reused_only_at_the_batch_step(tests_and_truth, monkeypatch, steps,
+                                                    reused):
+    tests, p = tests_and_truth
+    prob = _problem(tests, p)
+    prob.model = replace(prob.model, row_steps=lambda pt, ps: np.array(steps[: len(ps)]))
+    u = prob.u_of(p)
+    prob.residuals(u)
+    rows_seen: list[int] = []
+    real = fitting_mod.twins_of_tests
+    monkeypatch.setattr(fitting_mod, "twins_of_tests",
+                        lambda pts, pss: rows_seen.extend(len(x) for x in pss) or real(pts, pss))
+    prob.jacobian(u)
+    n = len(prob.free) + (0 if reused else 1)
+    assert rows_seen == [n] * len(prob.tests)
+
+
+def test_row_steps_are_the_simulators_sub_steps(tests_and_truth):
+    tests, p = tests_and_truth
+    pt = next(t for t in tests if t.scenario == "free_tie_rods")
+    ps = _rows(pt.model, p, ["worm_gear.stiffness_nm_per_rad"], [1.0, 4.0])
+    kernel = pt.model.row_steps(pt, ps)
+    assert list(kernel) == [eps.substeps(q, pt.scenario, pt.dt_s) for q in ps]
+    assert kernel[1] > kernel[0]
