@@ -415,7 +415,8 @@ def _discover_from_base(campaign: Campaign, settings: DiscoverSettings, base: Id
         scores = structure_test(ids, p, scales, base.preid["upper"], exclude=set(accepted),
                                 decimate=ids_settings.decimate, refine=settings.refine,
                                 reset=reset, only=shortlist, progress=tick,
-                                stage_free=cascade_free)
+                                stage_free=cascade_free,
+                                evidence_gain=0.5 * settings.min_relative_gain)
         rec = {"round": rnd + 1, "candidates": [_score_record(s) for s in scores],
                "accepted": None, "reason": ""}
         rounds.append(rec)

@@ -42,7 +42,11 @@ class EffectSpec:
 
     ``headline`` maps the spec's headline parameter names to model parameter
     names; ``free`` lists the parameters a refit frees when the effect is
-    inserted; ``default_size`` is a realistic size for the bench.
+    inserted; ``default_size`` is a realistic size for the bench;
+    ``absorbed_by`` names base parameters that a fit without the effect
+    inflates to stand in for it (the element's own Coulomb level carries a
+    missing Stribeck rise), which the structure test restarts at their typical
+    values for a candidate that shows evidence.
     """
 
     effect: str
@@ -50,6 +54,7 @@ class EffectSpec:
     headline: dict[str, str]
     free: tuple[str, ...]
     default_size: dict[str, float]
+    absorbed_by: tuple[str, ...] = ()
 
     @property
     def key(self) -> str:
