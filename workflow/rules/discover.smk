@@ -21,6 +21,7 @@ rule discover:
             labels={"campaign": "{campaign}", "result": "control FIT per model family"},
         ),
         summary="results/{campaign}/discover/discovery.md",
+        resolution="results/{campaign}/discover/resolution.csv",
         summary_html=report(
             "results/{campaign}/discover/discovery.html",
             caption="../report/discovery_md.rst",

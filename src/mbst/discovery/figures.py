@@ -92,6 +92,39 @@ def structure_bars(result, path: Path) -> None:
     plots._save(fig, path)
 
 
+def resolution_bars(result, path: Path) -> bool:
+    """Predicted share of its stage's cost each pair would remove, realistic size and beyond."""
+    res = sorted((r for r in result.resolution if r.sizes), key=lambda r: r.sizes[0].share)
+    if not res:
+        return False
+    fig, ax = plt.subplots(figsize=(11.0, 0.3 * len(res) + 1.8))
+    y = np.arange(len(res))
+    colors = ["tab:green" if r.resolved_from == 1.0 else
+              "tab:orange" if r.resolved_from else "tab:gray" for r in res]
+    ax.barh(y, [100 * r.sizes[0].share for r in res], color=colors)
+    most = max(s.multiple for r in res for s in r.sizes)
+    ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
+               zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
+    ax.set_yticks(y, [f"{r.key} ({r.stage})" + (
+        "" if r.resolved_from == 1.0 else
+        f" — from {r.resolved_from:g}×" if r.resolved_from else
+        f" — not resolved ({100 * r.sizes[-1].share:.0f} %, ΔAIC {r.sizes[-1].aic_delta:.0f}"
+        f" at {r.sizes[-1].multiple:g}×)")
+        for r in res], fontsize=7)
+    ax.axvline(100 * result_margin(result), color="tab:red", ls="--", lw=1,
+               label=f"acceptance margin (and ΔAIC ≤ −{result.settings.min_aic_drop:g})")
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("predicted share of its stage's residual cost removed [%]", fontsize=8)
+    ax.set_title("What these tests can resolve, bar: at the realistic size\ngreen: resolved "
+                 f"there · orange: only larger · gray: not up to {most:g}× or the bound",
+                 fontsize=8)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout(pad=1.5)
+    plots._save(fig, path)
+    return True
+
+
 def result_margin(result) -> float:
     return float(result.settings.min_relative_gain)
 
@@ -176,6 +209,7 @@ def write_all(result, figdir: Path) -> None:
     shown = controls or [prepared[r.id] for r in result.residual_tests]
     reversal_zoom(result, figdir / "reversal_zoom.png")
     structure_bars(result, figdir / "structure_test.png")
+    resolution_bars(result, figdir / "resolution.png")
     stick_slip(result, figdir / "stick_slip.png")
     comparison_bars(result, figdir / "comparison.png")
     plots.time_histories(shown, models, figdir / "time_histories.png")

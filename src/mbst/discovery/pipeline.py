@@ -30,6 +30,7 @@ import pandas as pd
 from mbst.campaign import Campaign
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.residuals import dominant_regions, residual_locations
+from mbst.discovery.resolution import Resolution, campaign_resolution
 from mbst.discovery.structure import (
     CandidateScore,
     StageScorer,
@@ -78,6 +79,8 @@ class DiscoverSettings:
     equation_error: bool = True
     neural_iterations: int | None = None
     progress: bool = False
+    # predict the smallest size of every catalogue pair the tests resolve (resolution.py)
+    resolution: bool = True
 
 
 @dataclass
@@ -125,6 +128,8 @@ class DiscoveryResult:
     residual_tests: list[TestResidual] = field(repr=False, default_factory=list)
     settings: DiscoverSettings = field(repr=False, default_factory=DiscoverSettings)
     benchmark: dict | None = None
+    # what the tests could show of each pair not in the extended model (resolution.py)
+    resolution: list[Resolution] = field(default_factory=list)
 
     def summary(self) -> str:
         lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
@@ -136,6 +141,10 @@ class DiscoveryResult:
             where = " or ".join([f.component, *f.indistinguishable_from])
             lines.append(f"  found {f.effect} in {where} ({pars}), confidence "
                          f"{f.confidence:.2f}")
+        blind = [r.key for r in self.resolution if r.sizes and r.resolved_from != 1.0]
+        if blind:
+            lines.append("  these tests would not show at its realistic size: "
+                         f"{', '.join(blind)} (discovery.md, resolution.csv)")
         means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
         for m, v in means.items():
             lines.append(f"  control FIT mean {m:<9} {v:6.1f} %")
@@ -499,6 +508,17 @@ def _discover_from_base(campaign: Campaign, settings: DiscoverSettings, base: Id
             cost_cur, _ = total_cost(ids, p, scales, ids_settings.decimate)
         timings["equation_error_s"] = time.perf_counter() - t0
 
+    resolution = []
+    if settings.resolution:
+        # against the model as it stands: what else these tests could have shown
+        t0 = time.perf_counter()
+        reset = compensating_parameters(p, [n for n in stage_params if n not in held], model)
+        resolution = campaign_resolution(ids, p, scales, cascade_free,
+                                         settings.min_relative_gain, settings.min_aic_drop,
+                                         exclude=set(accepted), decimate=ids_settings.decimate,
+                                         reset=reset)
+        timings["resolution_s"] = time.perf_counter() - t0
+
     # independent evidence from the regressions (identification tests only)
     sparse_ev = neural_ev = None
     neural_model = None
@@ -548,7 +568,7 @@ def _discover_from_base(campaign: Campaign, settings: DiscoverSettings, base: Id
         locations=locations, sparse=sparse_ev, neural=neural_ev, comparison=comparison,
         gain=gain, wall_s=time.perf_counter() - t_start, timings=timings, twins=twins,
         neural_model=neural_model, residual_tests=id_res, settings=settings,
-        benchmark=benchmark,
+        benchmark=benchmark, resolution=resolution,
     )
 
 
@@ -786,6 +806,7 @@ def discovery_record(result: DiscoveryResult) -> dict:
             m: round(float(v), 3)
             for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
         },
+        "resolution": [r.record() for r in result.resolution],
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
         "wall_s": round(result.wall_s, 2),
         "system": result.base.model.name,
@@ -806,6 +827,8 @@ def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
     pd.DataFrame(rows).to_csv(out / "structure_test.csv", index=False, float_format="%.6g")
     pd.DataFrame(result.locations).to_csv(out / "residual_locations.csv", index=False,
                                           float_format="%.4f")
+    resolution_table(result.resolution).to_csv(out / "resolution.csv", index=False,
+                                               float_format="%.6g")
     figdir = out / "figures"
     figdir.mkdir(parents=True, exist_ok=True)
     figures.write_all(result, figdir)
@@ -825,10 +848,14 @@ def markdown_summary(result: DiscoveryResult) -> str:
                          for f in result.findings]
     else:
         lines.append("No finding: the base model explains the identification tests down to "
-                     "the noise floor of the catalogue.")
+                     "the noise floor of the catalogue" + (
+                         " (of what these tests can resolve: see below)."
+                         if result.resolution else "."))
     for r in result.rounds:
         if r.get("reason"):
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
+    if result.resolution:
+        lines += resolution_lines(result)
     lines += ["", "## Control tests (held out): FIT %", ""]
     wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
                                          values="fit_percent", sort=False)
@@ -840,6 +867,53 @@ def markdown_summary(result: DiscoveryResult) -> str:
     if result.benchmark and "published" in result.benchmark:
         lines += benchmark_table(result.benchmark)
     return "\n".join(lines) + "\n"
+
+
+def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
+    """One row per (pair, size) of the predicted scores (``resolution.csv``)."""
+    columns = ["effect", "component", "stage", "multiple_of_realistic_size",
+               "predicted_relative_gain", "predicted_aic_delta", "resolved"]
+    if not resolution:
+        return pd.DataFrame(columns=columns)
+    return pd.DataFrame([
+        {"effect": r.effect, "component": r.component, "stage": r.stage,
+         "multiple_of_realistic_size": s.multiple,
+         **{f"size.{k}": v for k, v in s.values.items()},
+         "predicted_relative_gain": s.share, "predicted_aic_delta": s.aic_delta,
+         "resolved": r.resolved_from is not None and s.multiple >= r.resolved_from}
+        for r in resolution for s in r.sizes])
+
+
+def resolution_lines(result: DiscoveryResult) -> list[str]:
+    """The report's section: which pairs these tests can show, and from which size."""
+    st = result.settings
+    lines = ["", "## What these tests can resolve", "",
+             "Predicted share of its stage's residual cost each catalogue pair would remove if "
+             "the rig had it at its realistic size (the twin with the effect minus the twin "
+             "without, less what the stage's parameters absorb; `resolution.csv`), and the "
+             f"smallest size that clears the margins ({100 * st.min_relative_gain:.0f} % and "
+             f"ΔAIC ≤ −{st.min_aic_drop:.0f}). An estimate: a pair marked *not resolved* can "
+             "be in the rig without any finding here; longer or other tests would be needed.",
+             "", "![what these tests can resolve](figures/resolution.png)",
+             "", "| effect | component | stage | share at realistic size | ΔAIC | "
+             "resolved from |", "|---|---|---|---|---|---|"]
+    # the blind spots first, then the pairs that need the largest size
+    for r in sorted(result.resolution, key=lambda r: (r.resolved_from is not None,
+                                                      -(r.resolved_from or 0), r.key)):
+        if not r.sizes:
+            continue
+        one = r.sizes[0]
+        if r.resolved_from is None:
+            last = r.sizes[-1]
+            where = ("**not resolved** up to " + ", ".join(
+                f"{k} = {v:.3g}" for k, v in last.values.items() if k in r.size_parameters))
+        else:
+            s = next(s for s in r.sizes if s.multiple == r.resolved_from)
+            where = ("realistic size" if s.multiple == 1.0 else f"{s.multiple:g}× (" + ", ".join(
+                f"{k} = {v:.3g}" for k, v in s.values.items() if k in r.size_parameters) + ")")
+        lines.append(f"| {r.effect} | {r.component} | {r.stage} | {100 * one.share:.1f} % | "
+                     f"{one.aic_delta:.0f} | {where} |")
+    return lines
 
 
 def benchmark_table(bench: dict) -> list[str]:

@@ -46,7 +46,12 @@ class EffectSpec:
     ``absorbed_by`` names base parameters that a fit without the effect
     inflates to stand in for it (the element's own Coulomb level carries a
     missing Stribeck rise), which the structure test restarts at their typical
-    values for a candidate that shows evidence.
+    values for a candidate that shows evidence. ``size_parameters`` are the
+    parameters that set the effect's strength from their neutral value (default:
+    every free parameter whose realistic size differs from its neutral value);
+    ``discovery/resolution.py`` scales them to find the smallest size a
+    campaign resolves. Those in ``inverse_size`` make the effect stronger as
+    they shrink (a Dahl stiffness: the presliding displacement is F_c/σ).
     """
 
     effect: str
@@ -55,6 +60,8 @@ class EffectSpec:
     free: tuple[str, ...]
     default_size: dict[str, float]
     absorbed_by: tuple[str, ...] = ()
+    size_parameters: tuple[str, ...] = ()
+    inverse_size: tuple[str, ...] = ()
 
     @property
     def key(self) -> str:

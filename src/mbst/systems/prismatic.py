@@ -71,9 +71,11 @@ PARAM_INDEX = {s.name: i for i, s in enumerate(PARAM_SPECS)}
  I_PPOS, I_PAMP, I_PWID, I_LAG) = range(len(PARAM_SPECS))
 
 
-def _effect(effect: str, component: str, size: dict[str, float]) -> EffectSpec:
+def _effect(effect: str, component: str, size: dict[str, float],
+            size_parameters: tuple[str, ...] = ()) -> EffectSpec:
     prefix = f"{component}.{effect}."
-    return EffectSpec(effect, component, {n[len(prefix):]: n for n in size}, tuple(size), size)
+    return EffectSpec(effect, component, {n[len(prefix):]: n for n in size}, tuple(size), size,
+                      size_parameters=size_parameters)
 
 
 CATALOGUE: tuple[EffectSpec, ...] = (
@@ -87,7 +89,8 @@ CATALOGUE: tuple[EffectSpec, ...] = (
             {"ball_screw.load_dependent_friction.coefficient": 0.05}),
     _effect("position_dependent_friction", "ball_screw",
             {"ball_screw.position_dependent_friction.position_m": 0.1,
-             "ball_screw.position_dependent_friction.amplitude": 1.0}),
+             "ball_screw.position_dependent_friction.amplitude": 1.0},
+            ("ball_screw.position_dependent_friction.amplitude",)),
     _effect("drive_lag", "drive", {"drive.drive_lag.time_constant_s": 0.002}),
 )
 
