@@ -201,9 +201,11 @@ def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
     # what an empty answer covers: the prediction of what these tests resolve marks as
     # out of reach at the realistic size exactly the pairs the catalogue sweep misses
     resolution = {r.key: r for r in result.resolution}
-    assert set(resolution) == {e.key for e in EFFECT_CATALOGUE
-                               if stage_for(e, {"blocked_column", "free_tie_rods"}, EPS_MODEL)}
-    unresolved = {k for k, r in resolution.items() if r.resolved_from != 1.0}
+    assert set(resolution) == set(EFFECTS)
+    tested = {k for k, r in resolution.items() if r.stage is not None}
+    assert tested == {e.key for e in EFFECT_CATALOGUE
+                      if stage_for(e, {"blocked_column", "free_tie_rods"}, EPS_MODEL)}
+    unresolved = {k for k in tested if resolution[k].resolved_from != 1.0}
     assert unresolved == set(KNOWN_MISSES), {k: resolution[k].sizes[0] for k in unresolved}
     # ... and column Stribeck, which the sweep names from a ratio of 3, at a larger size
     assert resolution["stribeck_friction:steering_column"].resolved_from in (3.0, 4.0)
@@ -431,11 +433,14 @@ def test_a_tie_is_declared_only_between_components_that_move_as_one_body():
 def test_base_refit_also_starts_from_the_reset_parameters(backlash):
     """A gain the reset start alone gives belongs to the base model, not to an effect.
 
-    The extended model with its gear stiffness stuck at 1000 N·m/rad (a base
-    model's compensation for the backlash; demo-assist kept it and a motor Dahl
-    term then "removed" 33 % of the stage cost): refitted only from where it is
-    the stage stays ~9 % above the fitted cost, from the reset start too it
-    gets back within a few percent.
+    The extended model with its gear stiffness stuck at 1000 N·m/rad and its mesh
+    damping at its bound of 20 N·m·s/rad (how a base model compensates for the
+    backlash: soft and heavily damped; demo-assist kept such a gear and a motor
+    Dahl term then "removed" 33 % of the stage cost): refitted only from where it
+    is, the stage stays 70 % above the fitted cost; from the reset start too it
+    gets back within 0.1 %. (With the stiffness alone stuck the plain refit stayed
+    9 % above on one machine and escaped to 0.6 % on another: the test needs a
+    start that stays stuck.)
     """
     from mbst.discovery.structure import StageScorer, compensating_parameters
     from mbst.fitting import channel_scales
@@ -447,12 +452,14 @@ def test_base_refit_also_starts_from_the_reset_parameters(backlash):
     fitted = result.extended_params
     stuck = fitted.copy()
     stuck[model.param_index["worm_gear.stiffness_nm_per_rad"]] = 1000.0
+    stuck[model.param_index["worm_gear.damping_nms_per_rad"]] = model.spec(
+        "worm_gear.damping_nms_per_rad").upper
     reset = compensating_parameters(stuck, list(model.stage_free()["free_tie_rods"]), model)
-    assert "worm_gear.stiffness_nm_per_rad" in reset
+    assert {"worm_gear.stiffness_nm_per_rad", "worm_gear.damping_nms_per_rad"} <= set(reset)
     args = (stage, "free_tie_rods", stuck, channel_scales(ids), result.base.preid["upper"], 2)
     plain, with_reset = StageScorer(*args), StageScorer(*args, reset=reset)
     cost_fitted = plain.costs(fitted[None]).sum()
-    assert plain.base_refit()[1] > 1.05 * cost_fitted
+    assert plain.base_refit()[1] > 1.3 * cost_fitted
     assert with_reset.base_refit()[1] < 1.03 * cost_fitted
 
 

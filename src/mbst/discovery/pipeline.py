@@ -145,6 +145,9 @@ class DiscoveryResult:
         if blind:
             lines.append("  these tests would not show at its realistic size: "
                          f"{', '.join(blind)} (discovery.md, resolution.csv)")
+        untested = [r.key for r in self.resolution if r.stage is None]
+        if untested:
+            lines.append(f"  no test where it acts: {', '.join(untested)}")
         means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
         for m, v in means.items():
             lines.append(f"  control FIT mean {m:<9} {v:6.1f} %")
@@ -898,8 +901,15 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
              "", "| effect | component | stage | share at realistic size | ΔAIC | "
              "resolved from |", "|---|---|---|---|---|---|"]
     # the blind spots first, then the pairs that need the largest size
-    for r in sorted(result.resolution, key=lambda r: (r.resolved_from is not None,
+    model = result.base.model
+    for r in sorted(result.resolution, key=lambda r: (r.stage is not None,
+                                                      r.resolved_from is not None,
                                                       -(r.resolved_from or 0), r.key)):
+        if r.stage is None:
+            where = " or ".join(model.component_scenarios.get(r.component, ())) or "–"
+            lines.append(f"| {r.effect} | {r.component} | – | – | – | **not tested**: no "
+                         f"identification test where it acts ({where}) |")
+            continue
         if not r.sizes:
             continue
         one = r.sizes[0]

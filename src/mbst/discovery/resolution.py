@@ -67,7 +67,7 @@ class Resolution:
     key: str
     effect: str
     component: str
-    stage: str
+    stage: str | None  # None: no identification test in a scenario where it acts
     size_parameters: list[str]  # headline names scaled from the neutral value
     sizes: list[SizeScore] = field(default_factory=list)
     resolved_from: float | None = None  # the smallest multiple that clears both margins
@@ -185,20 +185,25 @@ def campaign_resolution(id_tests: list[PreparedTest], p: np.ndarray, scales: dic
                         ) -> list[Resolution]:
     """What the identification tests can show of every catalogue pair not in the model.
 
+    A pair whose component acts in no tested stage gets ``stage=None`` and no sizes.
+
     ``p`` is the model as it stands (after the accepted effects), ``stage_free``
     what the cascade freed per stage, the margins those of acceptance, ``reset``
     the compensating parameters with their typical values (see
-    ``structure.compensating_parameters``). Pairs whose
-    component acts in no tested stage are left out.
+    ``structure.compensating_parameters``).
     """
     model = id_tests[0].model
     scenarios = {st for pt in id_tests for st in model.stages_of(pt)}
     by_stage: dict[str, list[EffectSpec]] = {}
-    for spec in model.catalogue:
-        stage = stage_for(spec, scenarios, model) if spec.key not in exclude else None
-        if stage is not None:
-            by_stage.setdefault(stage, []).append(spec)
     out = []
+    for spec in model.catalogue:
+        if spec.key in exclude:
+            continue
+        stage = stage_for(spec, scenarios, model)
+        if stage is None:  # no test where it acts: the answer says nothing of it
+            out.append(Resolution(spec.key, spec.effect, spec.component, None, []))
+        else:
+            by_stage.setdefault(stage, []).append(spec)
     for stage, specs in by_stage.items():
         out += stage_resolution(model.stage_tests(stage, id_tests), stage, specs, p, scales,
                                 stage_free.get(stage), decimate, reset)
