@@ -143,11 +143,11 @@ class DiscoveryResult:
                          f"{f.confidence:.2f}")
         blind = [r.key for r in self.resolution if r.sizes and r.resolved_from != 1.0]
         if blind:
-            lines.append("  these tests would not show at its realistic size: "
+            lines.append("  these tests would not show at their realistic size: "
                          f"{', '.join(blind)} (discovery.md, resolution.csv)")
         untested = [r.key for r in self.resolution if r.stage is None]
         if untested:
-            lines.append(f"  no test where it acts: {', '.join(untested)}")
+            lines.append(f"  no test where they act: {', '.join(untested)}")
         means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
         for m, v in means.items():
             lines.append(f"  control FIT mean {m:<9} {v:6.1f} %")
@@ -896,8 +896,8 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
              "without, less what the stage's parameters absorb; `resolution.csv`), and the "
              f"smallest size that clears the margins ({100 * st.min_relative_gain:.0f} % and "
              f"ΔAIC ≤ −{st.min_aic_drop:.0f}). An estimate: a pair marked *not resolved* can "
-             "be in the rig without any finding here; longer or other tests would be needed.",
-             "", "![what these tests can resolve](figures/resolution.png)",
+             "be in the rig without any finding here; longer or other tests would be needed "
+             "(figure: `figures/resolution.png`).",
              "", "| effect | component | stage | share at realistic size | ΔAIC | "
              "resolved from |", "|---|---|---|---|---|---|"]
     # the blind spots first, then the pairs that need the largest size
