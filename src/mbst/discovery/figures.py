@@ -94,7 +94,8 @@ def structure_bars(result, path: Path) -> None:
 
 def resolution_bars(result, path: Path) -> bool:
     """Predicted share of its stage's cost each pair would remove, realistic size and beyond."""
-    res = sorted((r for r in result.resolution if r.sizes), key=lambda r: r.sizes[0].share)
+    res = sorted((r for r in result.resolution if r.sizes and r.sizes[0].multiple == 1.0),
+                 key=lambda r: r.sizes[0].share)
     if not res:
         return False
     fig, ax = plt.subplots(figsize=(11.0, 0.3 * len(res) + 1.8))

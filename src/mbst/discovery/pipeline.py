@@ -910,9 +910,9 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
             lines.append(f"| {r.effect} | {r.component} | – | – | – | **not tested**: no "
                          f"identification test where it acts ({where}) |")
             continue
-        if not r.sizes:
+        one = next((s for s in r.sizes if s.multiple == 1.0), None)
+        if one is None:  # the simulator could not run the realistic size
             continue
-        one = r.sizes[0]
         if r.resolved_from is None:
             last = r.sizes[-1]
             where = ("**not resolved** up to " + ", ".join(

@@ -159,7 +159,7 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
             if key not in seen:  # a multiple clipped to the bound repeats the last size
                 seen.add(key)
                 sizes.append((m, values))
-        energy = np.zeros(len(sizes))
+        energy = np.full(len(sizes), np.nan)  # NaN: no finite twin at that size
         for q, basis in zip(points, bases, strict=True):
             rows = np.repeat(q[None], len(sizes), axis=0)
             for i, (_, values) in enumerate(sizes):
@@ -168,8 +168,10 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
             for i, di in enumerate(_stage_signals(scorer, q, rows)):
                 if np.all(np.isfinite(di)):
                     left = di - basis @ (basis.T @ di)
-                    energy[i] = max(energy[i], 0.5 * float(left @ left))
+                    energy[i] = np.fmax(energy[i], 0.5 * float(left @ left))
         for (m, values), e in zip(sizes, energy, strict=True):
+            if np.isnan(e):  # a size the simulator could not run says nothing
+                continue
             res.sizes.append(SizeScore(
                 m, {h: float(values[n]) for h, n in spec.headline.items()},
                 e / (cost + e) if cost + e > 0 else 0.0,
