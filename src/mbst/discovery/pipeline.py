@@ -9,7 +9,9 @@
    criterion (effective sample count) by ``min_aic_drop``, wins
    leave-one-test-out cross-validation in most folds, and still lowers the
    identification cost after the whole cascade is refitted with it;
-3. the sparse regression and the neural residual as independent evidence.
+3. the sparse regression and the neural residual as independent evidence;
+4. what the tests can resolve (``resolution.campaign_resolution``): from which
+   size each catalogue pair not found would have cleared the same margins.
 
 The held-out control tests are touched only afterwards, to measure the
 gain of every model family side by side.

@@ -106,7 +106,12 @@ def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float) -> di
 
 
 def _stage_signals(scorer: StageScorer, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Weighted twin of each row minus that of ``p`` (the stage's residual layout)."""
+    """Weighted twin of each row minus that of ``p`` (the stage's residual layout).
+
+    ``p`` is simulated in the same batch as the rows, not once for all: a batch runs
+    at the finest step any row needs (a Stribeck rise needs many), and only twins
+    integrated alike difference to the effect alone.
+    """
     prob = scorer.problem(scorer.stage_free, p)
     tests = scorer.tests
     twins = twins_of_tests(tests, [np.vstack([p[None], rows])] * len(tests))
