@@ -15,10 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from mbst.bench import DEFAULT_SENSORS, BenchRecipe, assist_plan, compact_assist_plan, run_bench
-from mbst.campaign import read_campaign
-from mbst.identify import IdentifySettings, correlate, identify
-from mbst.systems import eps_assist
+from mbst.identify.cascade import IdentifySettings, correlate, identify
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps import assist as eps_assist
+from mbst.systems.eps.bench import (
+    DEFAULT_SENSORS,
+    BenchRecipe,
+    assist_plan,
+    compact_assist_plan,
+    run_bench,
+)
 
 
 def one(tmp: Path, label: str, recipe: BenchRecipe) -> None:

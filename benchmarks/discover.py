@@ -19,9 +19,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from mbst.bench import BenchRecipe, compact_plan, run_bench
-from mbst.campaign import read_campaign
 from mbst.discovery.pipeline import DiscoverSettings, discover
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 
 CASES = (
     ("demo: worm-gear backlash", ["backlash:worm_gear"], 0, None),

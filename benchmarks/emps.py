@@ -16,11 +16,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from mbst.campaign import read_campaign
 from mbst.discovery.pipeline import DiscoverSettings, discover
-from mbst.importers import import_emps
-from mbst.systems.prismatic_bench import run_prismatic_bench
-from mbst.systems.prismatic_benchmark import open_loop_fit, open_loop_refit
+from mbst.io.campaign import read_campaign
+from mbst.systems.prismatic.bench import run_prismatic_bench
+from mbst.systems.prismatic.benchmark import open_loop_fit, open_loop_refit
+from mbst.systems.prismatic.importer import import_emps
 
 KEYS = ("force_error_percent_test", "closed_loop_position_error_percent_test",
         "closed_loop_force_error_percent_test", "open_loop_fit_percent_test")

@@ -10,9 +10,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from mbst.bench import BenchRecipe, run_bench
-from mbst.campaign import read_campaign
-from mbst.identify import IdentifySettings, identify
+from mbst.identify.cascade import IdentifySettings, identify
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps.bench import BenchRecipe, run_bench
 
 
 def main() -> None:

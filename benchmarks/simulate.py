@@ -23,8 +23,8 @@ import time
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from mbst.bench import BenchRecipe, input_profile
-from mbst.systems import eps
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.bench import BenchRecipe, input_profile
 
 SAMPLE_RATE_HZ = 1000.0
 FREQUENCY_HZ = 0.8

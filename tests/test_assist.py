@@ -8,7 +8,17 @@ import numpy as np
 import pytest
 import yaml
 
-from mbst.bench import (
+from mbst.identify.cascade import (
+    IdentifySettings,
+    correlate,
+    identify,
+    run_cascade,
+    write_identify_outputs,
+)
+from mbst.identify.fitting import prepare_test, simulate_twin
+from mbst.io.campaign import CampaignError, read_campaign
+from mbst.systems.eps import assist as eps_assist
+from mbst.systems.eps.bench import (
     DEFAULT_SENSORS,
     DEMO_ASSIST_CURVES,
     DEMO_ASSIST_DAMPING,
@@ -16,16 +26,6 @@ from mbst.bench import (
     compact_assist_plan,
     run_bench,
 )
-from mbst.campaign import CampaignError, read_campaign
-from mbst.fitting import prepare_test, simulate_twin
-from mbst.identify import (
-    IdentifySettings,
-    correlate,
-    identify,
-    run_cascade,
-    write_identify_outputs,
-)
-from mbst.systems import eps_assist
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mbst import bench
-from mbst.bench import (
+from mbst.cli import main
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps import bench
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.bench import (
     DEFAULT_SENSORS,
     DEMO_OFFSETS,
     KNOWN,
@@ -20,9 +23,6 @@ from mbst.bench import (
     run_bench,
     simulate_plan,
 )
-from mbst.campaign import read_campaign
-from mbst.cli import main
-from mbst.systems import eps
 
 LEAD_S = 0.5  # input_profile holds the angle at 0 this long before the motion
 

@@ -1,4 +1,4 @@
-"""Tests for mbst.campaign: reading, validation, writing and the summary."""
+"""Tests for mbst.io.campaign: reading, validation, writing and the summary."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from mbst.campaign import (
+from mbst.core.family import get_system, known_systems
+from mbst.io.campaign import (
     Campaign,
     CampaignError,
     TestSpec,
@@ -18,7 +19,6 @@ from mbst.campaign import (
     summarize_campaign,
     write_campaign,
 )
-from mbst.systems import get_system, known_systems
 
 SYSTEM = "eps-column-assist"
 NAME = "demo-eps"

@@ -16,8 +16,6 @@ import pandas as pd
 import pytest
 
 import mbst.discovery.pipeline as pipeline_mod
-from mbst.bench import BenchRecipe, compact_plan, run_bench
-from mbst.campaign import read_campaign
 from mbst.cli import main
 from mbst.discovery.pipeline import (
     DiscoverSettings,
@@ -25,10 +23,12 @@ from mbst.discovery.pipeline import (
     discovery_record,
     write_discover_outputs,
 )
-from mbst.discovery.resolution import scaled_size
-from mbst.discovery.structure import effective_samples, stage_for, start_grid
-from mbst.systems.eps_model import EPS_MODEL
-from mbst.systems.eps_params import EFFECT_CATALOGUE, EFFECTS
+from mbst.discovery.rounds.resolution import scaled_size
+from mbst.discovery.rounds.structure import effective_samples, stage_for, start_grid
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
+from mbst.systems.eps.model import EPS_MODEL
+from mbst.systems.eps.params import EFFECT_CATALOGUE, EFFECTS
 
 SETTINGS = dict(max_effects=1, sparse=False, neural=False)
 
@@ -85,7 +85,7 @@ def backlash(tmp_path_factory):
     """
     import sys
 
-    import mbst.fitting as fitting_mod
+    import mbst.identify.fitting as fitting_mod
 
     seen: list[str] = []
     real_twins, real_compare = fitting_mod.twins_of_tests, pipeline_mod._compare
@@ -152,7 +152,7 @@ def test_extension_restores_control_fit_to_the_true_model(backlash):
 def test_motor_angle_is_used_when_the_campaign_logs_it(tmp_path_factory):
     """The optional motor angle enters every refit and the comparison: the gear gap shows
     there directly, as the motor lagging the column by the width at each reversal."""
-    from mbst.bench import DEFAULT_SENSORS
+    from mbst.systems.eps.bench import DEFAULT_SENSORS
 
     out = tmp_path_factory.mktemp("disc_motor")
     recipe = BenchRecipe(effects=["backlash:worm_gear"], seed=1, plan=compact_plan(),
@@ -376,7 +376,7 @@ def test_confidence_weighs_candidates_with_one_sample_count():
     from types import SimpleNamespace
 
     from mbst.discovery.pipeline import akaike_weight
-    from mbst.discovery.structure import aic_delta
+    from mbst.discovery.rounds.structure import aic_delta
 
     def cand(gain, n_eff):
         return SimpleNamespace(stage="free_tie_rods", cost=1.0 - gain, cost_base=1.0,
@@ -442,8 +442,8 @@ def test_base_refit_also_starts_from_the_reset_parameters(backlash):
     9 % above on one machine and escaped to 0.6 % on another: the test needs a
     start that stays stuck.)
     """
-    from mbst.discovery.structure import StageScorer, compensating_parameters
-    from mbst.fitting import channel_scales
+    from mbst.discovery.rounds.structure import StageScorer, compensating_parameters
+    from mbst.identify.fitting import channel_scales
 
     camp, _, result = backlash
     model = result.base.model
@@ -471,7 +471,7 @@ def test_extension_falls_back_to_the_cascade_restarts(monkeypatch, quick_cost, e
     (The powered backlash case needs the fallback; it is slow, so the branch is
     checked here with a stand-in cascade.)
     """
-    from mbst.identify import IdentifySettings
+    from mbst.identify.cascade import IdentifySettings
 
     runs: list[int] = []
 
@@ -492,8 +492,8 @@ def test_tires_candidates_refit_the_offsets_the_cascade_frees(tmp_path):
     fit puts into the tie-rod force offsets. Refitted with only the tire parameters the
     asymmetry cannot pay; with the cascade's free set of that stage (the offsets are first
     measured there) it removes nearly all of the stage cost."""
-    from mbst.discovery.structure import StageScorer
-    from mbst.fitting import channel_scales, prepare_test
+    from mbst.discovery.rounds.structure import StageScorer
+    from mbst.identify.fitting import channel_scales, prepare_test
 
     recipe = BenchRecipe(effects=["asymmetric_friction:tires"], seed=1)
     camp = read_campaign(run_bench(tmp_path, recipe))
@@ -520,7 +520,7 @@ def test_extension_keeps_its_start_when_the_cascade_ends_worse(monkeypatch):
     """A start is already a complete extended model; a cascade that ends in a worse basin
     from it must not cost the finding (the powered backlash case: start 0.00163, cascade
     0.00762 against the base's 0.00413)."""
-    from mbst.identify import IdentifySettings
+    from mbst.identify.cascade import IdentifySettings
 
     def cascade(campaign, settings, base, extra_free):
         return base + 1.0, [], {}, [], {}  # the cascade moves every parameter
@@ -544,9 +544,9 @@ def test_a_candidate_with_evidence_refines_from_the_level_it_absorbed(tmp_path, 
     does not (their refits stay as cheap as before)."""
     from dataclasses import replace
 
-    import mbst.discovery.structure as structure_mod
-    from mbst.discovery.structure import StageScorer
-    from mbst.fitting import channel_scales, prepare_test
+    import mbst.discovery.rounds.structure as structure_mod
+    from mbst.discovery.rounds.structure import StageScorer
+    from mbst.identify.fitting import channel_scales, prepare_test
 
     recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())
     camp = read_campaign(run_bench(tmp_path, recipe))

@@ -12,11 +12,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import mbst.fitting as fitting_mod
-from mbst.bench import BenchRecipe, compact_plan, run_bench
-from mbst.campaign import read_campaign
-from mbst.fitting import FitProblem, channel_scales, prepare_test, twins_of_tests
-from mbst.systems import eps
+import mbst.identify.fitting as fitting_mod
+from mbst.identify.fitting import FitProblem, channel_scales, prepare_test, twins_of_tests
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 
 
 @pytest.fixture(scope="module")

@@ -9,14 +9,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mbst.bench import BenchRecipe, PlannedTest, run_bench
-from mbst.campaign import CampaignError, read_campaign
 from mbst.cli import main
-from mbst.fitting import channel_scales, hac_meat, residual_memory
-from mbst.identify import IdentifySettings, correlate, identify
-from mbst.plots import motion_reversals
-from mbst.systems.eps_model import rate_noise, smooth_input, standstill
-from mbst.systems.eps_params import PARAM_INDEX, vector_from
+from mbst.identify.cascade import IdentifySettings, correlate, identify
+from mbst.identify.fitting import channel_scales, hac_meat, residual_memory
+from mbst.io.campaign import CampaignError, read_campaign
+from mbst.report.plots import motion_reversals
+from mbst.systems.eps.bench import BenchRecipe, PlannedTest, run_bench
+from mbst.systems.eps.model import rate_noise, smooth_input, standstill
+from mbst.systems.eps.params import PARAM_INDEX, vector_from
 
 # The fit's own verdict must cover these (a guard against an empty "identifiable" set).
 WELL_DETERMINED = (
@@ -201,12 +201,12 @@ def test_rate_noise_and_standstill_are_read_from_the_angle():
 def test_fast_inputs_get_a_shorter_input_smoothing_window(tmp_path):
     """A 0.1 s impact on tires on ground: the default 0.1 s cubic rounded the pulses off
     and the *true* model's twin reached only ~72 % torque FIT; slow tests keep 0.1 s."""
-    from mbst.campaign import TestSpec, write_campaign
-    from mbst.fitting import prepare_test, simulate_twin
-    from mbst.metrics import fit_percent
+    from mbst.core.metrics import fit_percent
+    from mbst.identify.fitting import prepare_test, simulate_twin
+    from mbst.io.campaign import TestSpec, write_campaign
     from mbst.plan.inputs import profile
-    from mbst.systems import eps
-    from mbst.systems.eps_model import INPUT_WINDOW_S, input_window
+    from mbst.systems.eps import simulate as eps
+    from mbst.systems.eps.model import INPUT_WINDOW_S, input_window
 
     recipe = BenchRecipe(effects=[], seed=0)
     truth = recipe.true_params()
@@ -244,8 +244,8 @@ def test_fast_inputs_get_a_shorter_input_smoothing_window(tmp_path):
 def test_angle_noise_does_not_bias_the_column_friction(tmp_path):
     """The blocked column alone, with the bench's 0.05° of angle noise: a twin that
     switched its column friction on the noisy rate gave −19 % here."""
-    from mbst.bench import compact_plan
-    from mbst.identify import run_cascade
+    from mbst.identify.cascade import run_cascade
+    from mbst.systems.eps.bench import compact_plan
 
     recipe = BenchRecipe(effects=[], plan=compact_plan()[:2], seed=0)
     camp = read_campaign(run_bench(tmp_path, recipe))

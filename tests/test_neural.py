@@ -1,4 +1,4 @@
-"""Physics + neural residual (mbst.discovery.neural) on seeded bench campaigns."""
+"""Physics + neural residual (mbst.discovery.evidence.neural) on seeded bench campaigns."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from mbst.bench import BenchRecipe, run_bench
-from mbst.campaign import read_campaign
+from mbst.core.metrics import fit_percent
 from mbst.discovery.data import residual_data
-from mbst.discovery.neural import NeuralResidual, explain, plot_learned
-from mbst.identify import IdentifySettings, identify
-from mbst.metrics import fit_percent
+from mbst.discovery.evidence.neural import NeuralResidual, explain, plot_learned
+from mbst.identify.cascade import IdentifySettings, identify
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps.bench import BenchRecipe, run_bench
 
 # Measured on the seed-1 backlash campaign (worm-gear gap 0.035 rad): the free_tie_rods
 # control torque goes from 86.4 % to 92.3–95.6 % FIT over training seeds 0, 1, 3 (default

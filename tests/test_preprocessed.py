@@ -8,11 +8,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mbst.bench import NOISE_RMS, BenchRecipe, PlannedTest, run_bench
-from mbst.campaign import CampaignError, read_campaign
 from mbst.cli import main
-from mbst.fitting import prepare_test
-from mbst.preprocess import exponential_filter
+from mbst.core.filtering import exponential_filter
+from mbst.identify.fitting import prepare_test
+from mbst.io.campaign import CampaignError, read_campaign
+from mbst.systems.eps.bench import NOISE_RMS, BenchRecipe, PlannedTest, run_bench
 
 TAU_S = 0.005
 

@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mbst.campaign import CampaignError, read_campaign
 from mbst.cli import main
+from mbst.core.family import get_system
 from mbst.discovery.pipeline import DiscoverSettings, discover, run_discover
-from mbst.identify import IdentifySettings
-from mbst.importers import import_emps
-from mbst.systems import get_system
-from mbst.systems import prismatic as P
-from mbst.systems.prismatic_bench import KNOWN, TRUE_BASE, reference, run_prismatic_bench
+from mbst.identify.cascade import IdentifySettings
+from mbst.io.campaign import CampaignError, read_campaign
+from mbst.systems.prismatic import model as P
+from mbst.systems.prismatic.bench import KNOWN, TRUE_BASE, reference, run_prismatic_bench
+from mbst.systems.prismatic.importer import import_emps
 
 EMPS_DIR = Path(os.environ.get("MBST_EMPS_DIR",
                                Path(__file__).resolve().parents[2] / "shared/data/real/emps"))

@@ -1,11 +1,11 @@
-"""Tests for mbst.provenance: the code-version hash the workflow uses as a rule param."""
+"""Tests for mbst.io.provenance: the code-version hash the workflow uses as a rule param."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-from mbst.provenance import package_dir, source_files, source_hash
+from mbst.io.provenance import package_dir, source_files, source_hash
 
 
 def make_pkg(root: Path) -> Path:

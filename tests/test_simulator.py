@@ -17,7 +17,9 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from mbst.bench import (
+from mbst.core.filtering import exponential_filter, filter_alpha
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.bench import (
     DEFAULT_SENSORS,
     NOISE_RMS,
     BenchRecipe,
@@ -25,9 +27,7 @@ from mbst.bench import (
     demo_plan,
     input_profile,
 )
-from mbst.preprocess import exponential_filter, filter_alpha
-from mbst.systems import eps
-from mbst.systems.eps_params import EFFECTS, PARAM_INDEX, vector_from
+from mbst.systems.eps.params import EFFECTS, PARAM_INDEX, vector_from
 
 
 def fit_percent(y: np.ndarray, y_hat: np.ndarray) -> float:

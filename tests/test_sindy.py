@@ -7,18 +7,18 @@ import copy
 import numpy as np
 import pytest
 
-from mbst.bench import BenchRecipe, run_bench
-from mbst.campaign import read_campaign
+from mbst.core.filtering import exponential_filter
+from mbst.core.metrics import fit_percent
 from mbst.discovery.data import TestResidual, residual_data
-from mbst.discovery.sindy import (
+from mbst.discovery.evidence.sindy import (
     SindyControlModel,
     _filter_tau,
     residual_regression,
 )
-from mbst.discovery.terms import dahl, in_gap, play
-from mbst.identify import IdentifySettings, identify
-from mbst.metrics import fit_percent
-from mbst.preprocess import exponential_filter
+from mbst.discovery.evidence.terms import dahl, in_gap, play
+from mbst.identify.cascade import IdentifySettings, identify
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps.bench import BenchRecipe, run_bench
 
 TORQUE = "steering_torque_nm"
 

@@ -6,13 +6,13 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from mbst.discovery.stickslip import (
+from mbst.core.filtering import exponential_filter
+from mbst.discovery.rounds.stickslip import (
     MIN_BASE_MISFIT,
     StickSlipScore,
     envelope_misfit,
     rank,
 )
-from mbst.preprocess import exponential_filter
 
 DT, TAU, NOISE = 0.002, 0.01, 0.02
 
@@ -30,7 +30,7 @@ def _rig(phase: float, stick_slip: bool, noise_seed: int | None = None) -> np.nd
 
 
 def _test(measured: np.ndarray) -> SimpleNamespace:
-    from mbst.preprocess import filtered_noise_gain
+    from mbst.core.filtering import filtered_noise_gain
 
     return SimpleNamespace(measured={"steering_torque_nm": measured}, dt_s=DT, tau_s=TAU,
                            noise={"steering_torque_nm": NOISE * filtered_noise_gain(DT, TAU)})

@@ -1,4 +1,4 @@
-"""Tests for mbst.summary.write_summary: results/summary.csv from per-campaign results."""
+"""Tests for mbst.report.summary.write_summary: results/summary.csv from per-campaign results."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mbst.summary import COLUMNS, write_summary
+from mbst.report.summary import COLUMNS, write_summary
 
 CORR_HEADER = "test,channel,fit_percent,nrmse,pearson_r,r2,max_abs_error\n"
 

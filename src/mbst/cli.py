@@ -18,7 +18,7 @@ class UsageError(Exception):
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    from mbst.campaign import read_campaign, summarize_campaign
+    from mbst.io.campaign import read_campaign, summarize_campaign
 
     camp = read_campaign(args.campaign)
     print(summarize_campaign(camp))
@@ -27,7 +27,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from mbst.bench import (
+    from mbst.systems.eps.bench import (
         DEFAULT_SENSORS,
         DEMO_EFFECTS,
         PLANS,
@@ -59,8 +59,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
-    from mbst.campaign import read_campaign
-    from mbst.preprocessed import write_preprocessed
+    from mbst.io.campaign import read_campaign
+    from mbst.report.preprocess import write_preprocessed
 
     camp = read_campaign(args.campaign)
     if args.tau < 0:
@@ -72,8 +72,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_identify(args: argparse.Namespace) -> int:
-    from mbst.campaign import read_campaign
-    from mbst.identify import IdentifySettings, run_identify
+    from mbst.identify.cascade import IdentifySettings, run_identify
+    from mbst.io.campaign import read_campaign
 
     camp = read_campaign(args.campaign)
     if args.multistart < 1:
@@ -89,9 +89,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 
 
 def _cmd_discover(args: argparse.Namespace) -> int:
-    from mbst.campaign import read_campaign
     from mbst.discovery.pipeline import DiscoverSettings, run_discover
-    from mbst.identify import IdentifySettings
+    from mbst.identify.cascade import IdentifySettings
+    from mbst.io.campaign import read_campaign
 
     camp = read_campaign(args.campaign)
     if args.max_effects < 0:
@@ -131,7 +131,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from mbst.importers import import_emps
+    from mbst.systems.prismatic.importer import import_emps
 
     if args.format != "emps":
         raise UsageError(f"unknown format '{args.format}' (known: emps)")
@@ -145,7 +145,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from mbst.summary import write_summary
+    from mbst.report.summary import write_summary
 
     try:
         out = write_summary([Path(p) for p in args.inputs], Path(args.out))
@@ -265,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mbst.campaign import CampaignError
+    from mbst.io.campaign import CampaignError
 
     args = build_parser().parse_args(argv)
     try:

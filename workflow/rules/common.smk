@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from mbst.provenance import source_hash
+from mbst.io.provenance import source_hash
 
 # --------------------------------------------------------------------------- campaigns
 

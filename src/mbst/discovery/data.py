@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mbst.fitting import PreparedTest, simulate_twin
+from mbst.identify.fitting import PreparedTest, simulate_twin
 
 
 @dataclass

@@ -29,11 +29,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mbst.campaign import Campaign
+from mbst.core.metrics import fit_percent
+from mbst.core.model import ModelDefinition
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.residuals import dominant_regions, residual_locations
-from mbst.discovery.resolution import Resolution, campaign_resolution
-from mbst.discovery.structure import (
+from mbst.discovery.rounds.resolution import Resolution, campaign_resolution
+from mbst.discovery.rounds.structure import (
     CandidateScore,
     StageScorer,
     aic_delta,
@@ -41,11 +42,10 @@ from mbst.discovery.structure import (
     effective_samples,
     structure_test,
 )
-from mbst.fitting import PreparedTest, channel_scales, solve, twins_of_tests
-from mbst.identify import IdentifyResult, IdentifySettings, correlate, run_cascade
-from mbst.metrics import fit_percent
-from mbst.outputs import atomic_output_dir, write_json, write_markdown
-from mbst.systems.model import ModelDefinition
+from mbst.identify.cascade import IdentifyResult, IdentifySettings, correlate, run_cascade
+from mbst.identify.fitting import PreparedTest, channel_scales, solve, twins_of_tests
+from mbst.io.campaign import Campaign
+from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
 
 FORMAT = "mbst-discovery/1"
 
@@ -585,7 +585,7 @@ def _equation_error_round(model, ids: list[PreparedTest], p: np.ndarray, base_fr
     Returns the round's record, the finding (or None) and the parameter vector
     with the named effect at its equation-error size (the rest as ``p``).
     """
-    from mbst.discovery import equation_error as eq
+    from mbst.discovery.rounds import equation_error as eq
 
     cost_base, _, scores = eq.equation_error_test(model, ids, p, base_free, accepted)
     rec = {"round": len(rounds) + 1, "method": "equation_error", "base_cost": cost_base,
@@ -627,7 +627,7 @@ def _equation_error_round(model, ids: list[PreparedTest], p: np.ndarray, base_fr
 def _stick_slip_round(ids: list[PreparedTest], p: np.ndarray, accepted: set[str],
                       rounds: list[dict]) -> tuple[dict, Finding | None, np.ndarray]:
     """The phase-free Stribeck test, after the output-error rounds found nothing more."""
-    from mbst.discovery import stickslip
+    from mbst.discovery.rounds import stickslip
 
     base_misfit, scores = stickslip.stick_slip_test(ids, p, exclude=accepted)
     rec = {"round": len(rounds) + 1, "method": "stick_slip",
@@ -704,7 +704,7 @@ def _progress_bar(enabled: bool):
 
 
 def _sparse_evidence(id_res: list[TestResidual]) -> dict | None:
-    from mbst.discovery.sindy import residual_regression
+    from mbst.discovery.evidence.sindy import residual_regression
 
     try:
         ev = residual_regression(id_res)
@@ -716,7 +716,7 @@ def _sparse_evidence(id_res: list[TestResidual]) -> dict | None:
 
 
 def _neural_evidence(id_res: list[TestResidual], settings: DiscoverSettings):
-    from mbst.discovery import neural
+    from mbst.discovery.evidence import neural
 
     kw = {"seed": settings.identify.seed}
     if settings.neural_iterations is not None:
@@ -750,7 +750,7 @@ def _compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
     add("extended", ext_tw)
     ctrl_res = [residual_data(pt, base.params, base.twins[pt.id]) for pt in controls]
     if settings.sparse and "sparse" in base.model.evidence_methods:
-        from mbst.discovery.sindy import SindyControlModel
+        from mbst.discovery.evidence.sindy import SindyControlModel
 
         sm = SindyControlModel().fit(id_res)
         add("sindy", {r.id: sm.predict(r) for r in ctrl_res})
@@ -820,7 +820,7 @@ def discovery_record(result: DiscoveryResult) -> dict:
 
 
 def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
-    from mbst.discovery import figures
+    from mbst.report import discovery_figures as figures
 
     write_json(out / "discovery.json", discovery_record(result))
     if result.benchmark is not None:

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mbst.core.filtering import motion_reversals
 from mbst.discovery.data import TestResidual
-from mbst.preprocess import motion_reversals
 
 REVERSAL_WINDOW_S = 0.2
 

@@ -17,8 +17,8 @@ import yaml
 
 from mbst.plan.inputs import INPUT_KINDS
 from mbst.plan.sensors import INPUT_SENSOR, SENSORS
-from mbst.systems.eps_channels import SCENARIOS
-from mbst.systems.eps_params import PARAM_INDEX, PARAM_SPECS, vector_from
+from mbst.systems.eps.channels import SCENARIOS
+from mbst.systems.eps.params import PARAM_INDEX, PARAM_SPECS, vector_from
 
 FORMAT = "mbst-plan/1"
 TOP_KEYS = ("format", "name", "seed", "known", "sample_rate_hz", "analysis_rate_hz",
@@ -332,7 +332,7 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
         r.text(s, f"effects.default_sensors[{k}]", sensor_names)
     only = eff.get("only")
     if only is not None:
-        from mbst.systems.eps_params import EFFECTS
+        from mbst.systems.eps.params import EFFECTS
         for k, e in enumerate(r.seq(only, "effects.only")):
             r.text(e, f"effects.only[{k}]", sorted(EFFECTS))
     fc = r.mapping(fig.get("frequency_comparison", {}), "figures.frequency_comparison",
@@ -346,7 +346,7 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
     for k, i in enumerate(fig_in):
         r.text(i, f"figures.frequency_comparison.inputs[{k}]", input_ids)
     proof_effects = r.seq(proof.get("effects", []), "proof.effects", min_len=0)
-    from mbst.bench import parse_effect
+    from mbst.systems.eps.bench import parse_effect
 
     for k, e in enumerate(proof_effects):
         try:

@@ -15,8 +15,8 @@ from mbst.plan.config import PlanConfig
 from mbst.plan.inputs import profile, test_input
 from mbst.plan.selection import Step
 from mbst.plan.sensitivity import Sensitivity
-from mbst.systems import eps
-from mbst.systems.eps_params import PARAM_SPECS
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.params import PARAM_SPECS
 
 
 def _short(name: str) -> str:

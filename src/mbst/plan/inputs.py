@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from mbst.bench import input_profile as bench_profile
+from mbst.systems.eps.bench import input_profile as bench_profile
 
 # kinds the planner can generate, with their required keys (besides amplitude_scale, cost)
 INPUT_KINDS: dict[str, tuple[str, ...]] = {

@@ -2,7 +2,7 @@
 
 Both campaigns are run on the virtual bench (the same rig, the same sensor
 noise levels as the planning config), identified by the same cascade (the
-stages and fitting of ``mbst.identify``, restricted to the plan's unknowns),
+stages and fitting of ``mbst.identify.cascade``, restricted to the plan's unknowns),
 and compared on
 
 - the relative errors of every unknown parameter against the bench truth;
@@ -22,18 +22,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mbst.bench import KNOWN, BenchRecipe
-from mbst.campaign import TestSpec, read_campaign, write_campaign
-from mbst.identify import IdentifySettings, correlate, run_cascade
+from mbst.identify.cascade import IdentifySettings, correlate, run_cascade
+from mbst.io.campaign import TestSpec, read_campaign, write_campaign
 from mbst.plan.config import PlanConfig
 from mbst.plan.inputs import profile
 from mbst.plan.selection import Plan
 from mbst.plan.sensitivity import Sensitivity
 from mbst.plan.sensors import INPUT_SENSOR, logged_channels, sensor_signals
-from mbst.systems import eps
-from mbst.systems.eps_channels import SYSTEM_NAME
-from mbst.systems.eps_model import EPS_MODEL
-from mbst.systems.eps_params import PARAM_INDEX
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.bench import KNOWN, BenchRecipe
+from mbst.systems.eps.channels import SYSTEM_NAME
+from mbst.systems.eps.model import EPS_MODEL
+from mbst.systems.eps.params import PARAM_INDEX
 
 
 def campaign_tests(sens: Sensitivity, plan: Plan) -> list[tuple[str, int, str]]:

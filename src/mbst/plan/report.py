@@ -8,9 +8,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from mbst.bench import KNOWN
-from mbst.campaign import FORMAT as CAMPAIGN_FORMAT
-from mbst.outputs import atomic_text, write_json, write_markdown
+from mbst.io.campaign import FORMAT as CAMPAIGN_FORMAT
+from mbst.io.outputs import atomic_text, write_json, write_markdown
 from mbst.plan.config import PlanConfig
 from mbst.plan.information import (
     PARTNER_CORRELATION,
@@ -23,7 +22,8 @@ from mbst.plan.proof import campaign_tests
 from mbst.plan.selection import Plan, plan_cost
 from mbst.plan.sensitivity import Sensitivity
 from mbst.plan.sensors import SENSORS, logged_channels
-from mbst.systems.eps_channels import SYSTEM_NAME
+from mbst.systems.eps.bench import KNOWN
+from mbst.systems.eps.channels import SYSTEM_NAME
 
 
 def campaign_skeleton(cfg: PlanConfig, sens: Sensitivity, plan: Plan) -> dict:

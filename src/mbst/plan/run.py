@@ -8,7 +8,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mbst.outputs import atomic_output_dir
+from mbst.io.outputs import atomic_output_dir
 from mbst.plan.config import PlanConfig
 from mbst.plan.effects import effect_observability
 from mbst.plan.information import Identifiability

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mbst.core.family import get_system
 from mbst.plan.config import PlanConfig
 from mbst.plan.information import (
     RIDGE,
@@ -37,8 +38,7 @@ from mbst.plan.information import (
 )
 from mbst.plan.sensitivity import Sensitivity
 from mbst.plan.sensors import SENSORS
-from mbst.systems import get_system
-from mbst.systems.eps_channels import SYSTEM_NAME
+from mbst.systems.eps.channels import SYSTEM_NAME
 
 
 @dataclass

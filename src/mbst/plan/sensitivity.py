@@ -31,9 +31,10 @@ from tqdm import tqdm
 from mbst.plan.config import PlanConfig
 from mbst.plan.inputs import profile, test_input
 from mbst.plan.sensors import INPUT_SENSOR, sensor_signals
-from mbst.systems import eps, eps_model
-from mbst.systems import eps_kernel as K
-from mbst.systems.eps_params import EFFECT_CATALOGUE, PARAM_INDEX, EffectSpec
+from mbst.systems.eps import kernel as K
+from mbst.systems.eps import model as eps_model
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.params import EFFECT_CATALOGUE, PARAM_INDEX, EffectSpec
 
 
 @dataclass(frozen=True)

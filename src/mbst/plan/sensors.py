@@ -1,6 +1,6 @@
 """Candidate sensors of the EPS rig, derived from the simulator's outputs.
 
-There is one model (``mbst.systems.eps``); a candidate sensor that is not one
+There is one model (``mbst.systems.eps.simulate``); a candidate sensor that is not one
 of the campaign-format channels is read from the kernel's internal outputs
 (``eps_kernel.OUTPUT_NAMES``) here, in this one place, never from a second
 model.
@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mbst.systems import eps
-from mbst.systems import eps_kernel as K
-from mbst.systems.eps_channels import OUTPUT_CHANNELS, SCENARIOS, TIE_RODS_CONNECTED
+from mbst.systems.eps import kernel as K
+from mbst.systems.eps import simulate as eps
+from mbst.systems.eps.channels import OUTPUT_CHANNELS, SCENARIOS, TIE_RODS_CONNECTED
 
 # Wheel angle from the wheel-side rack displacement: x_w = arm · δ. A typical
 # steering-arm length; it only scales the channel (its noise is given in rad).

@@ -1,0 +1,1 @@
+"""Evidence beside the structure test: sparse regression (pysindy) and the neural residual."""

@@ -1,0 +1,267 @@
+"""Stick-slip: a phase-free structure test for Stribeck friction.
+
+At its realistic size, Stribeck friction makes a compliant drive stick-slip: a
+sawtooth of a few hertz at slow speeds. The instant of each break-away hangs
+on the input noise, so the sawtooth's phase is not repeatable; even the true
+model, driven by the measured angle, then scores worse than the base model in
+an output-error cost, and the structure test (``structure.py``) cannot see the
+effect. The *envelope* of the fast part of a signal is phase-free:
+
+1. every channel, measured and simulated (both already filtered alike), is
+   high-passed above the drive's band and its power averaged over a short
+   window;
+2. the misfit compares the twin's power plus the sensor-noise power with the
+   measured power, sample by sample, in units of the noise power;
+3. each Stribeck candidate (one per friction element) is searched on a grid
+   of its two headline parameters, then on a finer grid around the best
+   point, with every other parameter held at the base fit.
+
+The candidate that removes the most envelope misfit is named; a near tie
+between elements that move as one body is broken by the size that is the
+more typical for the element, and the confidence says so.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+
+from mbst.core.filtering import exponential_filter
+from mbst.core.model import EffectSpec, ModelDefinition
+from mbst.identify.fitting import PreparedTest, _twins_batch
+
+EFFECT = "stribeck_friction"
+HIGHPASS_HZ = 3.0  # above the drive (≤ 1 Hz and its first harmonics), below the sawtooth
+WINDOW_S = 0.2
+# base misfit (noise-power units, per sample) below which nothing is searched. Sensor
+# noise alone gives 0.03 (tests/test_stickslip.py); clean compact campaigns leave 0.5-1.0
+# (the base fit's own small misfit of the fast transients), a hidden worm-gear backlash
+# 3.2, motor and rack Stribeck 6 and 160 (benchmarks/discover.py)
+MIN_BASE_MISFIT = 2.0
+# share of the base misfit the named candidate must remove
+MIN_GAIN = 0.5
+# candidates whose misfit is within this factor of the best count as a tie
+TIE_FACTOR = 1.25
+_RATIOS = (1.1, 1.2, 1.4, 1.8, 2.6, 3.5)
+_VELOCITY_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)
+
+
+def highpass(y: np.ndarray, dt_s: float, cutoff_hz: float = HIGHPASS_HZ) -> np.ndarray:
+    """The part of ``y`` above ``cutoff_hz`` (4th-order Butterworth, zero phase)."""
+    sos = butter(4, cutoff_hz, "highpass", fs=1.0 / dt_s, output="sos")
+    return sosfiltfilt(sos, np.asarray(y, float))
+
+
+def hf_power(y: np.ndarray, dt_s: float, cutoff_hz: float = HIGHPASS_HZ,
+             window_s: float = WINDOW_S) -> np.ndarray:
+    """Power of the part of ``y`` above ``cutoff_hz``, averaged over ``window_s``."""
+    h = highpass(y, dt_s, cutoff_hz)
+    n = max(1, int(round(window_s / dt_s)))
+    return np.convolve(h * h, np.ones(n) / n, mode="same")
+
+
+@lru_cache(maxsize=32)
+def noise_hf_fraction(dt_s: float, tau_s: float, cutoff_hz: float = HIGHPASS_HZ) -> float:
+    """Share of filtered white noise's power above ``cutoff_hz`` (a fixed seed: deterministic)."""
+    w = np.random.default_rng(0).standard_normal(40_000)
+    f = exponential_filter(w, dt_s, tau_s)
+    return float(np.mean(hf_power(f, dt_s, cutoff_hz)[1000:-1000]) / np.var(f))
+
+
+def envelope_misfit(pt: PreparedTest, twin: dict[str, np.ndarray],
+                    measured_power: dict[str, np.ndarray] | None = None) -> float:
+    """Mean squared gap of √power (twin + noise vs measured), in units of the noise power."""
+    frac = noise_hf_fraction(pt.dt_s, pt.tau_s)
+    total, n = 0.0, 0
+    for ch, y in pt.measured.items():
+        p_noise = (pt.noise.get(ch, 0.0) ** 2) * frac
+        if p_noise <= 0:
+            continue
+        p_meas = measured_power[ch] if measured_power else hf_power(y, pt.dt_s)
+        p_twin = hf_power(twin[ch], pt.dt_s)
+        gap = np.sqrt(p_twin + p_noise) - np.sqrt(np.maximum(p_meas, 0.0))
+        total += float(np.sum(gap * gap) / p_noise)
+        n += len(gap)
+    return total / n if n else 0.0
+
+
+@dataclass
+class StickSlipScore:
+    """One Stribeck candidate scored by the envelope misfit on its stage's tests."""
+
+    key: str
+    effect: str
+    component: str
+    stage: str
+    misfit_base: float
+    misfit: float
+    params: np.ndarray = field(repr=False)
+    headline: dict[str, float] = field(default_factory=dict)
+    per_test: dict[str, tuple[float, float]] = field(default_factory=dict)
+    typicality: float = 0.0
+    at_bound: list[str] = field(default_factory=list)
+    decided_by: str = "misfit"
+    wall_s: float = 0.0
+
+    @property
+    def relative_gain(self) -> float:
+        """Share of the base model's envelope misfit the candidate removes."""
+        return 1.0 - self.misfit / self.misfit_base if self.misfit_base > 0 else 0.0
+
+    @property
+    def wins(self) -> int:
+        """Tests whose envelope misfit the candidate lowers."""
+        return sum(c < b for b, c in self.per_test.values())
+
+    def record(self) -> dict:
+        return {"key": self.key, "stage": self.stage, "misfit_base": round(self.misfit_base, 4),
+                "misfit": round(self.misfit, 4), "relative_gain": round(self.relative_gain, 4),
+                "headline": self.headline, "typicality": round(self.typicality, 3),
+                "at_bound": self.at_bound, "decided_by": self.decided_by, "wins": self.wins, "tests": len(self.per_test), "wall_s": round(self.wall_s, 2)}
+
+
+class StageEnvelope:
+    """The measured envelopes of a stage's tests, computed once."""
+
+    def __init__(self, tests: list[PreparedTest], stage: str) -> None:
+        self.tests = tests
+        self.stage = stage
+        self.power = [{ch: hf_power(y, pt.dt_s) for ch, y in pt.measured.items()}
+                      for pt in tests]
+
+    def misfits(self, ps: np.ndarray) -> np.ndarray:
+        """Envelope misfit of each parameter vector on each test, shape (len(ps), tests)."""
+        out = np.zeros((len(ps), len(self.tests)))
+        for j, (pt, pw) in enumerate(zip(self.tests, self.power, strict=True)):
+            for i, tw in enumerate(_twins_batch(pt, ps)):
+                ok = all(np.all(np.isfinite(tw[ch])) for ch in pt.measured)
+                out[i, j] = envelope_misfit(pt, tw, pw) if ok else np.inf
+        return out
+
+
+def _weights(tests: list[PreparedTest]) -> np.ndarray:
+    n = np.array([len(pt.time_s) for pt in tests], float)
+    return n / n.sum()
+
+
+def _typicality(spec: EffectSpec, p: np.ndarray, model: ModelDefinition) -> float:
+    """Log distance of the fitted size from the element's realistic size (0 = typical)."""
+    d = 0.0
+    for name in spec.free:
+        v = p[model.param_index[name]]
+        size = spec.default_size[name]
+        if name.endswith("static_to_coulomb_ratio"):
+            v, size = v - 1.0, size - 1.0  # the Stribeck excess over Coulomb
+        d += abs(math.log(max(v, 1e-12) / size))
+    return d
+
+
+def score_candidate(env: StageEnvelope, spec: EffectSpec, base: np.ndarray,
+                    misfit_base: np.ndarray) -> StickSlipScore:
+    """Grid search of the Stribeck ratio and velocity, then a finer grid around the best."""
+    t0 = time.perf_counter()
+    model = env.tests[0].model
+    ratio_name, vel_name = spec.free
+    lo_r, hi_r = model.spec(ratio_name).lower, model.spec(ratio_name).upper
+    vspec = model.spec(vel_name)
+    lo_v = max(vspec.lower, model.search_lower.get(vel_name, vspec.lower))
+    v0 = spec.default_size[vel_name]
+    w = _weights(env.tests)
+
+    def evaluate(points: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+        ps = np.repeat(base[None], len(points), axis=0)
+        for i, (r, v) in enumerate(points):
+            ps[i, model.param_index[ratio_name]] = float(np.clip(r, lo_r, hi_r))
+            ps[i, model.param_index[vel_name]] = float(np.clip(v, lo_v, vspec.upper))
+        return ps, env.misfits(ps)
+
+    coarse = [(r, v0 * f) for r, f in itertools.product(_RATIOS, _VELOCITY_FACTORS)]
+    ps, m = evaluate(coarse)
+    best = int(np.argmin(m @ w))
+    r_b, v_b = coarse[best]
+    # finer grid: a third of the coarse spacing in the excess ratio and in log velocity
+    fine = [(1.0 + (r_b - 1.0) * fr, v_b * fv)
+            for fr, fv in itertools.product((0.8, 1.0, 1.25), (0.7, 1.0, 1.4))
+            if (fr, fv) != (1.0, 1.0)]
+    ps2, m2 = evaluate(fine)
+    ps, m = np.vstack([ps, ps2]), np.vstack([m, m2])
+    best = int(np.argmin(m @ w))
+    p = ps[best]
+    bounds = {ratio_name: (lo_r, hi_r), vel_name: (lo_v, vspec.upper)}
+    at_bound = [h for h, n in spec.headline.items()
+                if np.isclose(p[model.param_index[n]], bounds[n], rtol=1e-9).any()]
+    return StickSlipScore(
+        key=spec.key, effect=spec.effect, component=spec.component, stage=env.stage,
+        misfit_base=float(misfit_base @ w), misfit=float(m[best] @ w), params=p,
+        headline={h: float(p[model.param_index[n]]) for h, n in spec.headline.items()},
+        per_test={pt.id: (float(b), float(c))
+                  for pt, b, c in zip(env.tests, misfit_base, m[best], strict=True)},
+        typicality=_typicality(spec, p, model), at_bound=at_bound,
+        wall_s=time.perf_counter() - t0)
+
+
+def stick_slip_test(id_tests: list[PreparedTest], base: np.ndarray,
+                    exclude: set[str] = frozenset(),
+                    min_base_misfit: float = MIN_BASE_MISFIT
+                    ) -> tuple[dict[str, float], list[StickSlipScore]]:
+    """Envelope misfit of the base model per stage, and the Stribeck candidates ranked.
+
+    Stages whose base misfit is below ``min_base_misfit`` show no stick-slip and
+    are not searched. Candidates are ranked by the misfit they leave; those
+    within ``TIE_FACTOR`` of the best are ordered by how typical their fitted
+    size is for the element (look-alikes that move as one body fit alike).
+    """
+    from mbst.discovery.rounds.structure import stage_for
+
+    model = id_tests[0].model
+    scenarios = {st for pt in id_tests for st in model.stages_of(pt)}
+    envs: dict[str, StageEnvelope] = {}
+    base_misfit: dict[str, float] = {}
+    per_test_base: dict[str, np.ndarray] = {}
+    out: list[StickSlipScore] = []
+    for spec in model.catalogue:
+        if spec.effect != EFFECT or spec.key in exclude:
+            continue
+        stage = stage_for(spec, scenarios, model)
+        if stage is None:
+            continue
+        if stage not in envs:
+            envs[stage] = StageEnvelope(model.stage_tests(stage, id_tests), stage)
+            per_test_base[stage] = envs[stage].misfits(base[None])[0]
+            base_misfit[stage] = float(per_test_base[stage] @ _weights(envs[stage].tests))
+        if base_misfit[stage] < min_base_misfit:
+            continue
+        out.append(score_candidate(envs[stage], spec, base, per_test_base[stage]))
+    return base_misfit, rank(out)
+
+
+def rank(scores: list[StickSlipScore]) -> list[StickSlipScore]:
+    """Best first, among the candidates that remove at least half the best's misfit.
+
+    A fitted size on the edge of its element's range stands in for something
+    else (as a base parameter at its bound does), so such a candidate goes
+    behind one that fits inside its range; near ties (``TIE_FACTOR``) go to
+    the more typical size. ``decided_by`` records which rule put the winner first.
+    """
+    if not scores:
+        return []
+    by_misfit = sorted(scores, key=lambda s: s.misfit)
+    top_gain = by_misfit[0].relative_gain
+    contenders = [s for s in by_misfit if s.relative_gain >= 0.5 * top_gain]
+    rest = [s for s in by_misfit if s not in contenders]
+    inside = [s for s in contenders if not s.at_bound] or contenders
+    edge = [s for s in contenders if s not in inside]
+    tied = [s for s in inside if s.misfit <= inside[0].misfit * TIE_FACTOR]
+    ordered = (sorted(tied, key=lambda s: s.typicality)
+               + [s for s in inside if s not in tied] + edge + rest)
+    first = ordered[0]
+    if first is not by_misfit[0]:
+        first.decided_by = "typical size" if first in tied and inside[0] is by_misfit[0] \
+            else "range"
+    return ordered

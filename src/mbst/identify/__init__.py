@@ -1,0 +1,1 @@
+"""Output-error identification: the fit problem, the cascade of cut-out stages."""

@@ -1,0 +1,460 @@
+"""Output-error fitting of the physics model to filtered test data.
+
+Shared by identification (the cascade) and discovery (refits with an
+inserted effect). Tests are prepared once (filtered, input rate computed);
+a ``FitProblem`` frees a subset of the parameter vector and exposes
+residuals and a batched finite-difference Jacobian to
+``scipy.optimize.least_squares``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from mbst.core.filtering import exponential_filter, filtered_noise_gain, white_noise_std
+from mbst.core.model import ModelDefinition
+from mbst.io.campaign import Campaign, CampaignError, TestSpec
+
+INPUT_WINDOW_S = 0.1
+# campaign.yaml key that marks a campaign written by `mbst preprocess` (already filtered)
+PREPROCESSED_KEY = "preprocessed"
+
+
+@dataclass
+class PreparedTest:
+    """One test ready for fitting: model input and filtered measured outputs."""
+
+    spec: TestSpec
+    time_s: np.ndarray
+    input_signal: np.ndarray
+    input_rate: np.ndarray
+    measured: dict[str, np.ndarray]
+    dt_s: float
+    tau_s: float
+    raw: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    model: ModelDefinition | None = field(default=None, repr=False)
+    inputs: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    # white-noise level of each filtered measured channel (sensor noise, not misfit)
+    noise: dict[str, float] = field(default_factory=dict, repr=False)
+
+    @property
+    def angle_in_rad(self) -> np.ndarray:
+        """The steering rig's name for the driving input (the measured angle)."""
+        return self.input_signal
+
+    @property
+    def omega_rad_per_s(self) -> np.ndarray:
+        return self.input_rate
+
+    @property
+    def id(self) -> str:
+        return self.spec.id
+
+    @property
+    def scenario(self) -> str:
+        return self.spec.scenario
+
+
+def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
+                 input_window_s: float = INPUT_WINDOW_S) -> PreparedTest:
+    """Filter a test's channels and derive the model input.
+
+    The family's model says how its input is derived (the EPS rig: the
+    measured angle smoothed without lag); simulated outputs then get the same
+    causal exponential filter as the measured ones, so both sides carry the
+    same phase lag (eps-model.md, "Preprocessing").
+    """
+    done = campaign.extra.get(PREPROCESSED_KEY)
+    if done and tau_s > 0:
+        # filtering twice would compare a twice-filtered measurement with a once-filtered twin
+        raise CampaignError(
+            f"is already filtered (campaign.yaml 'preprocessed:', from "
+            f"{done.get('from', '?') if isinstance(done, dict) else done}); fit the raw "
+            "campaign it came from, or pass --tau 0",
+            campaign=campaign.name, path=campaign.path / "campaign.yaml")
+    model = campaign.model()
+    df = campaign.frame(spec.id)
+    t = df["time_s"].to_numpy(float)
+    dt = float((t[-1] - t[0]) / (len(t) - 1))
+    signal, rate, inputs = model.prepare_inputs(df, dt, spec, input_window_s)
+    measured = {}
+    raw = {}
+    noise = {}
+    gain = filtered_noise_gain(dt, tau_s)
+    for ch in model.output_channels:
+        if ch in df.columns:
+            raw[ch] = df[ch].to_numpy(float)
+            measured[ch] = exponential_filter(raw[ch], dt, tau_s)
+            noise[ch] = white_noise_std(raw[ch], dt) * gain
+    return PreparedTest(spec, t, signal, rate, measured, dt, tau_s, raw, model, inputs, noise)
+
+
+def _filtered(pt: PreparedTest, sim: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    out = {ch: exponential_filter(sim[ch], pt.dt_s, pt.tau_s) for ch in pt.measured}
+    for k, v in sim.items():
+        if k.startswith("internal."):
+            out[k] = v
+    return out
+
+
+def twins_of_tests(pts: list[PreparedTest], pss: list[np.ndarray]
+                   ) -> list[list[dict[str, np.ndarray]]]:
+    """Simulated channels of several tests, each for its own parameter rows, filtered like
+    their measured twins (internal signals, ``internal.*``, unfiltered).
+
+    Every simulation of identification and discovery comes through here: the
+    family's ``simulate_tests`` spreads them over the cores as one set.
+    """
+    if not pts:
+        return []
+    many = pts[0].model.simulate_tests
+    sims = many(pts, [np.atleast_2d(ps) for ps in pss]) if many is not None else [
+        pt.model.simulate_batch(pt, ps) for pt, ps in zip(pts, pss, strict=True)]
+    return [[_filtered(pt, sim) for sim in rows] for pt, rows in zip(pts, sims, strict=True)]
+
+
+def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
+    """Simulated channels of a prepared test, filtered like their measured twins.
+
+    Internal signals (``internal.*``) come unfiltered.
+    """
+    return twins_of_tests([pt], [np.asarray(p, float)[None]])[0][0]
+
+
+def _measured_only(twin: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {ch: v for ch, v in twin.items() if not ch.startswith("internal.")}
+
+
+def _twins_batch(pt: PreparedTest, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
+    """Simulate many parameter vectors on one test in parallel (the family's batch simulator)."""
+    return [_measured_only(tw) for tw in twins_of_tests([pt], [ps])[0]]
+
+
+def channel_scales(tests: list[PreparedTest]) -> dict[str, float]:
+    """Pooled standard deviation of each measured channel (residual weights)."""
+    pooled: dict[str, list[np.ndarray]] = {}
+    for pt in tests:
+        for ch, y in pt.measured.items():
+            pooled.setdefault(ch, []).append(y - y.mean())
+    return {ch: float(np.std(np.concatenate(v))) or 1.0 for ch, v in pooled.items()}
+
+
+# the prior's weight on noise-free data, where the noise floor is zero
+PRIOR_WEIGHT_FLOOR = 1e-9
+
+
+class FitProblem:
+    """Least-squares problem over the free parameters ``free``.
+
+    Parameters are mapped to an unconstrained-ish coordinate ``u``: the log
+    for positive log-scale parameters, value/typical otherwise, so that
+    finite differences and trust regions see comparable steps.
+    """
+
+    def __init__(
+        self,
+        tests: list[PreparedTest],
+        channels: dict[str, list[str]],
+        free: list[str],
+        base: np.ndarray,
+        scales: dict[str, float],
+        lower: dict[str, float] | None = None,
+        upper: dict[str, float] | None = None,
+        decimate: int = 1,
+        prior_weight: float | None = None,
+        prior: dict[str, tuple[float, float]] | None = None,
+    ) -> None:
+        self.tests = tests
+        self.channels = channels
+        self.free = list(free)
+        self.base = np.array(base, dtype=float)
+        self.scales = scales
+        self.decimate = max(1, int(decimate))
+        self.model = tests[0].model if tests else None
+        self.idx = np.array([self.model.param_index[n] for n in self.free], dtype=int)
+        specs = [self.model.param_specs[i] for i in self.idx]
+        lo = np.array([(lower or {}).get(s.name, s.lower) for s in specs])
+        hi = np.array([(upper or {}).get(s.name, s.upper) for s in specs])
+        self.log = np.array([s.log_scale and s.lower > 0 for s in specs])
+        self.typ = np.array([max(abs(s.default), (s.upper - s.lower) / 20.0, 1e-12)
+                             for s in specs])
+        self.lb = self._to_u(lo)
+        self.ub = self._to_u(hi)
+        self.n_eval = 0
+        # the last residual evaluation (u, data residual of each test): least_squares asks
+        # for the Jacobian where it has just evaluated the residuals
+        self._last: tuple[np.ndarray, list[np.ndarray]] | None = None
+        # weak prior towards the start: keeps a parameter the data cannot see where it
+        # was (flagged non-identifiable) instead of letting it drift to a bound
+        self.u_prior = self.u_of(self.base)
+        if prior_weight is None:
+            prior_weight = self.noise_floor()
+        self.prior_w = np.array([0.0 if n.startswith("offset.") else prior_weight
+                                 for n in self.free])
+        # an explicit prior (value, std of ln θ), e.g. a plan's ranges: Gaussian on the
+        # scale of the data's noise, so it yields to data in proportion to their information
+        floor = self.noise_floor() if prior else 0.0
+        for j, n in enumerate(self.free):
+            if prior and n in prior:
+                value, std_log = prior[n]
+                self.u_prior[j] = math.log(value) if self.log[j] else value / self.typ[j]
+                std_u = std_log if self.log[j] else abs(value) * std_log / self.typ[j]
+                self.prior_w[j] = floor / max(std_u, 1e-12)
+
+    # coordinates ------------------------------------------------------------------
+    def _to_u(self, theta: np.ndarray) -> np.ndarray:
+        theta = np.asarray(theta, float)
+        return np.where(self.log, np.log(np.maximum(theta, 1e-300)), theta / self.typ)
+
+    def _from_u(self, u: np.ndarray) -> np.ndarray:
+        return np.where(self.log, np.exp(u), u * self.typ)
+
+    def dtheta_du(self, u: np.ndarray) -> np.ndarray:
+        return np.where(self.log, np.exp(u), self.typ)
+
+    def u_of(self, p: np.ndarray) -> np.ndarray:
+        return np.clip(self._to_u(p[self.idx]), self.lb, self.ub)
+
+    def p_of(self, u: np.ndarray) -> np.ndarray:
+        p = self.base.copy()
+        p[self.idx] = self._from_u(u)
+        return p
+
+    # residuals --------------------------------------------------------------------
+    def _weights(self, pt: PreparedTest, ch: str) -> float:
+        # each test counts alike whatever its length; channels in units of their spread
+        n = len(pt.time_s[:: self.decimate])
+        return 1.0 / (self.scales[ch] * math.sqrt(n))
+
+    def _res_of_twin(self, pt: PreparedTest, twin: dict[str, np.ndarray]) -> np.ndarray:
+        parts = []
+        for ch in self.channels[pt.id]:
+            w = self._weights(pt, ch)
+            parts.append(((twin[ch] - pt.measured[ch]) * w)[:: self.decimate])
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def noise_floor(self) -> float:
+        """RMS sensor noise of one weighted residual: the prior's weight for one unit of u.
+
+        A Gaussian prior of one unit of u (a factor e for a log-scale
+        parameter) around the start, on the scale of the data's own noise: it
+        holds a direction the data cannot see, and yields to any the data can.
+        A fixed weight did not: on clean data it pulled the column's viscous
+        friction to −68 % of its true value.
+        """
+        var = [(pt.noise.get(ch, 0.0) * self._weights(pt, ch)) ** 2
+               for pt in self.tests for ch in self.channels[pt.id]]
+        return max(math.sqrt(float(np.mean(var))) if var else 0.0, PRIOR_WEIGHT_FLOOR)
+
+    def block_sizes(self) -> list[int]:
+        """Length of each (test, channel) block of the data residuals, in order."""
+        return [len(pt.time_s[:: self.decimate]) for pt in self.tests
+                for _ in self.channels[pt.id]]
+
+    def residuals(self, u: np.ndarray) -> np.ndarray:
+        p = self.p_of(u)
+        self.n_eval += 1
+        twins = twins_of_tests(self.tests, [p[None]] * len(self.tests))
+        out = [self._res_of_twin(pt, tw[0]) for pt, tw in zip(self.tests, twins, strict=True)]
+        self._last = (np.array(u, float, copy=True), out)
+        r = np.concatenate([*out, self.prior_w * (u - self.u_prior)])
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def _reusable(self, pt: PreparedTest, ps: np.ndarray) -> bool:
+        """Whether the batch ``ps[1:]`` with row 0 simulated alone gives the numbers of the
+        batch ``ps``: the batch runs at the finest step of its rows, so row 0 must need
+        exactly what the others need at most (then neither side changes its step)."""
+        steps = self.model.row_steps
+        if len(ps) < 2 or steps is None:
+            return len(ps) >= 2
+        n = steps(pt, ps)
+        return bool(n[0] == n[1:].max())
+
+    def jacobian(self, u: np.ndarray) -> np.ndarray:
+        """Forward differences, all perturbations of a test simulated in one batch.
+
+        The unperturbed point is taken from the residual evaluation at ``u`` when
+        that is bitwise what the batch would give (least_squares asks for the
+        Jacobian where it has just evaluated): one simulation fewer per batch.
+        """
+        h = 1e-5 * np.maximum(1.0, np.abs(u))
+        # step away from the nearer bound so the perturbed point stays feasible
+        sgn = np.where(u + h > self.ub, -1.0, 1.0)
+        us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in range(len(u))]
+        ps = np.stack([self.p_of(v) for v in us])
+        last = self._last[1] if self._last is not None and np.array_equal(
+            self._last[0], u) else None
+        reuse = [last is not None and self._reusable(pt, ps) for pt in self.tests]
+        sims = twins_of_tests(self.tests, [ps[1:] if r else ps for r in reuse])
+        cols = []
+        for i, pt in enumerate(self.tests):
+            if reuse[i]:
+                twins, r0 = [None, *sims[i]], last[i]
+            else:
+                twins = sims[i]
+                r0 = self._res_of_twin(pt, twins[0])
+            cols.append(np.stack(
+                [(self._res_of_twin(pt, twins[j + 1]) - r0) / (sgn[j] * h[j])
+                 for j in range(len(u))], axis=1))
+        self.n_eval += len(us)
+        cols.append(np.diag(self.prior_w))
+        jac = np.concatenate(cols, axis=0)
+        return np.where(np.isfinite(jac), jac, 0.0)
+
+    def cost(self, u: np.ndarray) -> float:
+        r = self.residuals(u)
+        return 0.5 * float(r @ r)
+
+    def noise_cost(self) -> float:
+        """The cost that the sensor noise alone leaves at the true parameters (expected)."""
+        return 0.5 * sum(self.block_sizes()) * self.noise_floor() ** 2
+
+
+@dataclass
+class FitResult:
+    p: np.ndarray
+    u: np.ndarray
+    cost: float
+    std_error: dict[str, float]
+    correlation: np.ndarray
+    at_bound: dict[str, bool]
+    identifiable: dict[str, bool]
+    n_residuals: int
+    n_eval: int
+    starts: list[float]
+
+
+STALE_STARTS = 3
+
+
+def solve(
+    problem: FitProblem,
+    starts: list[np.ndarray],
+    max_nfev: int = 60,
+    more_starts: Callable[[], np.ndarray] | None = None,
+    max_more: int = 0,
+    good_cost: float = 0.0,
+) -> FitResult:
+    """Run least_squares from each start (parameter vectors); keep the best.
+
+    With ``more_starts``, up to ``max_more`` further starts are drawn from it
+    while the best cost is still above ``good_cost``, until ``STALE_STARTS`` in a
+    row find nothing clearly better (a cost the model cannot go below).
+    """
+    best = None
+    costs = []
+
+    def run(p0: np.ndarray):
+        u0 = problem.u_of(p0)
+        # keep strictly inside the bounds (trf needs interior starts)
+        span = problem.ub - problem.lb
+        u0 = np.clip(u0, problem.lb + 1e-6 * span, problem.ub - 1e-6 * span)
+        res = least_squares(problem.residuals, u0, jac=problem.jacobian,
+                            bounds=(problem.lb, problem.ub), method="trf", x_scale="jac",
+                            max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
+        costs.append(float(res.cost))
+        return res
+
+    for p0 in starts:
+        res = run(p0)
+        if best is None or res.cost < best.cost:
+            best = res
+    stale = 0  # further starts in a row that found no clearly better basin
+    while more_starts is not None and len(costs) < len(starts) + max_more and (
+            best.cost > good_cost) and stale < STALE_STARTS:
+        res = run(more_starts())
+        stale = 0 if res.cost < 0.9 * best.cost else stale + 1
+        if res.cost < best.cost:
+            best = res
+    return _summarise(problem, best, costs)
+
+
+# a parameter whose standard error exceeds this share of its value is reported as not
+# identifiable from the tests given
+IDENTIFIABLE_REL_STD = 0.1
+
+
+def residual_memory(r: np.ndarray, max_lag: int | None = None) -> int:
+    """Lags over which a residual block stays correlated (first autocorrelation below 0.05).
+
+    Filtered channels, a smoothed input and any unmodelled dynamics make
+    neighbouring residuals alike; treating them as independent samples makes
+    standard errors look several times smaller than they are.
+    """
+    r = np.asarray(r, float) - np.mean(r)
+    n = len(r)
+    if n < 8 or not np.any(r):
+        return 0
+    max_lag = min(max_lag or n // 4, n // 4)
+    spec = np.fft.rfft(r, 2 * n)
+    acf = np.fft.irfft(spec * np.conj(spec))[: max_lag + 1]
+    acf = acf / acf[0]
+    below = np.nonzero(acf < 0.05)[0]
+    return int(below[0]) if below.size else max_lag
+
+
+def hac_meat(jac: np.ndarray, r: np.ndarray, blocks: list[int], n_params: int) -> np.ndarray:
+    """Newey–West (Bartlett) estimate of cov(Jᵀr), block by block.
+
+    With white residuals this is s²·JᵀJ and the covariance reduces to the
+    classical s²·(JᵀJ)⁻¹; with correlated ones it widens it by as much as the
+    residual memory of each (test, channel) block says.
+    """
+    meat = np.zeros((jac.shape[1], jac.shape[1]))
+    dof = max(len(r) - n_params, 1) / max(len(r), 1)
+    start = 0
+    for size in blocks:
+        g = jac[start:start + size] * r[start:start + size, None]
+        lags = residual_memory(r[start:start + size])
+        meat += g.T @ g
+        for lag in range(1, lags + 1):
+            c = g[lag:].T @ g[:-lag]
+            meat += (1.0 - lag / (lags + 1)) * (c + c.T)
+        start += size
+    return meat / dof
+
+
+def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
+    u = res.x
+    jac = res.jac[: -len(u)]  # data rows only: the prior must not make a parameter look identified
+    m, n = jac.shape
+    # pseudo-inverse: a rank-deficient Jacobian is the non-identifiable case, not an error
+    uu, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    tol = sv.max() * 1e-9 if sv.size else 0.0
+    inv = np.where(sv > tol, 1.0 / np.maximum(sv, 1e-300) ** 2, 0.0)
+    bread = (vt.T * inv) @ vt
+    cov_u = bread @ hac_meat(jac, res.fun[:m], problem.block_sizes(), n) @ bread
+    std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
+    d = problem.dtheta_du(u)
+    theta = problem._from_u(u)
+    std_theta = std_u * d
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_u / np.outer(std_u, std_u)
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    # a direction the data do not constrain has a (near) zero singular value
+    weak = np.zeros(n, bool)
+    for k, s in enumerate(sv):
+        if s <= tol or s < 1e-6 * sv.max():
+            weak |= np.abs(vt[k]) > 0.3
+    span = problem.ub - problem.lb
+    at_bound = (u - problem.lb < 1e-4 * span) | (problem.ub - u < 1e-4 * span)
+    rel = np.where(np.abs(theta) > 0, std_theta / np.maximum(np.abs(theta), 1e-300), np.inf)
+    identifiable = ~weak & (rel < IDENTIFIABLE_REL_STD)
+    names = problem.free
+    return FitResult(
+        p=problem.p_of(u),
+        u=u,
+        cost=float(res.cost),
+        std_error={nm: float(v) for nm, v in zip(names, std_theta, strict=True)},
+        correlation=corr,
+        at_bound={nm: bool(v) for nm, v in zip(names, at_bound, strict=True)},
+        identifiable={nm: bool(v) for nm, v in zip(names, identifiable, strict=True)},
+        n_residuals=m,
+        n_eval=problem.n_eval,
+        starts=costs,
+    )

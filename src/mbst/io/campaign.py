@@ -1,0 +1,804 @@
+"""Read, validate and write test campaigns (``mbst-campaign/1``).
+
+The format is specified in ``campaign-format.md``: a directory holding a
+``campaign.yaml`` and one CSV or Parquet file per test. Everything about the
+rig (scenarios, channel names, which channels are required, motor modes) is
+asked from the system family named by the campaign's ``system:`` key, so this
+module knows no channel names of its own.
+
+Every problem found while reading is raised as a :class:`CampaignError` whose
+message is one line naming the campaign, the test, the file, the column and
+the row where they are known. Rows are counted 1-based over *data* rows: row 1
+is the first line after the CSV header (the first row of a Parquet table).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import uuid
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from mbst.core.family import SystemFamily, get_system, known_systems
+
+if TYPE_CHECKING:
+    from mbst.core.model import ModelDefinition
+
+FORMAT = "mbst-campaign/1"
+CAMPAIGN_FILE = "campaign.yaml"
+ROLES = ("identification", "control")
+DATA_EXTENSIONS = (".csv", ".parquet")
+MIN_SAMPLES = 100
+TIME_UNIFORMITY = 0.01  # every dt within 1 % of the median dt
+
+_TOP_KEYS = ("format", "name", "system", "known", "tests")
+_TEST_KEYS = (
+    "id",
+    "file",
+    "scenario",
+    "input",
+    "motor",
+    "role",
+    "vehicle_speed_kph",
+    "assist_mode",
+)
+_REQUIRED_TEST_KEYS = ("id", "file", "scenario", "input", "motor", "role")
+
+__all__ = [
+    "Campaign",
+    "CampaignError",
+    "TestSpec",
+    "read_campaign",
+    "summarize_campaign",
+    "write_campaign",
+]
+
+
+class CampaignError(Exception):
+    """A problem with a campaign, reported as one user-facing line.
+
+    Parameters
+    ----------
+    message
+        What is wrong, without the location.
+    campaign, test, column
+        Campaign name, test id and column name, where known.
+    row
+        1-based data row (row 1 is the first line after the CSV header).
+    path
+        The file concerned (``campaign.yaml`` or a test file).
+
+    Notes
+    -----
+    ``str(err)`` joins every known piece, e.g. ``campaign 'demo-eps', test
+    's2_sine', file tests/s2_sine.csv, column 'steering_torque_nm', row 17:
+    value is NaN``.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        campaign: str | None = None,
+        test: str | None = None,
+        column: str | None = None,
+        row: int | None = None,
+        path: str | Path | None = None,
+    ) -> None:
+        # Newlines (e.g. from yaml's messages) would break the one-line promise.
+        self.message = " ".join(str(message).split())
+        self.campaign = campaign
+        self.test = test
+        self.column = column
+        self.row = row
+        self.path = path
+        super().__init__(self.message)
+
+    def __str__(self) -> str:
+        parts = []
+        if self.campaign is not None:
+            parts.append(f"campaign '{self.campaign}'")
+        if self.test is not None:
+            parts.append(f"test '{self.test}'")
+        if self.path is not None:
+            parts.append(f"file {self.path}")
+        if self.column is not None:
+            parts.append(f"column '{self.column}'")
+        if self.row is not None:
+            parts.append(f"row {self.row}")
+        where = ", ".join(parts)
+        return f"{where}: {self.message}" if where else self.message
+
+    def __reduce__(self):
+        # Keep the keyword attributes when pickled across processes.
+        kwargs = {
+            "campaign": self.campaign,
+            "test": self.test,
+            "column": self.column,
+            "row": self.row,
+            "path": self.path,
+        }
+        return (_rebuild_error, (self.message, kwargs))
+
+
+def _rebuild_error(message: str, kwargs: dict) -> CampaignError:
+    return CampaignError(message, **kwargs)
+
+
+@dataclass
+class TestSpec:
+    """One entry of ``tests:`` in ``campaign.yaml``.
+
+    ``file`` is relative to the campaign directory. Unknown keys of the entry
+    are kept in ``extra`` and written back unchanged.
+    """
+
+    id: str
+    file: str
+    scenario: str
+    input: dict
+    motor: str
+    role: str
+    vehicle_speed_kph: float | None = None
+    assist_mode: str | None = None
+    extra: dict = field(default_factory=dict)
+    __test__ = False  # keep pytest from collecting it
+
+    @property
+    def input_kind(self) -> str | None:
+        """The profile kind (``sine``, ``sweep``, ...) or ``None`` if not given."""
+        kind = self.input.get("kind")
+        return None if kind is None else str(kind)
+
+
+@dataclass
+class Campaign:
+    """A validated campaign.
+
+    Attributes
+    ----------
+    path
+        The campaign directory (the one holding ``campaign.yaml``).
+    name, system
+        From ``campaign.yaml``; ``system`` names a registered system family.
+    known
+        A-priori parameter values (SI units), as floats.
+    tests
+        Test entries in file order.
+    extra
+        Unknown top-level keys, passed through.
+    data
+        Test id -> validated frame; filled by :func:`read_campaign` or lazily
+        by :meth:`frame`. Known channels are ``float64``; extra columns are kept
+        as read.
+    """
+
+    path: Path
+    name: str
+    system: str
+    known: dict[str, float]
+    tests: list[TestSpec]
+    extra: dict = field(default_factory=dict)
+    data: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False, compare=False)
+    _model: Any = field(default=None, init=False, repr=False, compare=False)
+
+    def model(self) -> ModelDefinition:
+        """The family's model definition with this campaign's own parameters (cached).
+
+        Every prepared test of a campaign shares this one object, so a fit
+        and its parameter vectors agree on the layout.
+        """
+        if self._model is None:
+            self._model = self.family.model().for_campaign(self)
+        return self._model
+
+    @property
+    def family(self) -> SystemFamily:
+        """The system family named by ``system``."""
+        return get_system(self.system)
+
+    def test(self, test_id: str) -> TestSpec:
+        """Return the test called ``test_id``; :class:`CampaignError` if there is none."""
+        for spec in self.tests:
+            if spec.id == test_id:
+                return spec
+        ids = ", ".join(s.id for s in self.tests)
+        raise CampaignError(
+            f"no such test; the campaign has: {ids}", campaign=self.name, test=test_id
+        )
+
+    def identification_tests(self) -> list[TestSpec]:
+        """Tests with ``role: identification`` (the only ones a fit may use)."""
+        return [s for s in self.tests if s.role == "identification"]
+
+    def control_tests(self) -> list[TestSpec]:
+        """Tests with ``role: control`` (held out, correlation only)."""
+        return [s for s in self.tests if s.role == "control"]
+
+    def file_path(self, test_id: str) -> Path:
+        """Absolute location of the data file of ``test_id``."""
+        return self.path / self.test(test_id).file
+
+    def frame(self, test_id: str) -> pd.DataFrame:
+        """Validated data of ``test_id``, read and checked on first use.
+
+        Raises
+        ------
+        CampaignError
+            If the test is unknown or its file fails validation.
+        """
+        if test_id not in self.data:
+            spec = self.test(test_id)
+            self.data[test_id] = _load_test_data(
+                self.path / spec.file, spec, self.family, self.name
+            )
+        return self.data[test_id]
+
+    def sample_time_s(self, test_id: str) -> float:
+        """Median sample time of ``test_id`` in seconds."""
+        t = self.frame(test_id)[self.family.time_channel].to_numpy(dtype=float)
+        return float(np.median(np.diff(t)))
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_campaign(path: str | Path, load_data: bool = True) -> Campaign:
+    """Read and validate a campaign.
+
+    Parameters
+    ----------
+    path
+        The campaign directory or its ``campaign.yaml``.
+    load_data
+        If true, read and validate every test file now and keep the frames in
+        ``Campaign.data``; otherwise only check ``campaign.yaml`` and that each
+        file exists, and load frames on first :meth:`Campaign.frame`.
+
+    Returns
+    -------
+    Campaign
+
+    Raises
+    ------
+    CampaignError
+        At the first problem. Rows in messages are 1-based data rows: row 1 is
+        the first line after the CSV header.
+    """
+    yaml_path = _locate_yaml(Path(path))
+    doc = _load_yaml(yaml_path)
+    campaign = _parse_campaign(doc, yaml_path)
+    if load_data:
+        for spec in campaign.tests:
+            campaign.frame(spec.id)
+    return campaign
+
+
+def _locate_yaml(path: Path) -> Path:
+    if path.is_dir():
+        yaml_path = path / CAMPAIGN_FILE
+        if not yaml_path.is_file():
+            raise CampaignError(f"missing {CAMPAIGN_FILE} in campaign directory", path=path)
+        return yaml_path
+    if path.is_file():
+        return path
+    raise CampaignError("no such campaign directory or campaign.yaml", path=path)
+
+
+def _load_yaml(yaml_path: Path) -> Any:
+    try:
+        text = yaml_path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CampaignError(f"cannot read: {exc}", path=yaml_path) from exc
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        problem = getattr(exc, "problem", None) or str(exc)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise CampaignError(f"YAML does not parse{where}: {problem}", path=yaml_path) from exc
+
+
+def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
+    if not isinstance(doc, dict):
+        got = "an empty file" if doc is None else type(doc).__name__
+        raise CampaignError(f"top level must be a mapping, got {got}", path=yaml_path)
+
+    # Name the campaign in errors as early as possible, even before `format` is checked.
+    raw_name = doc.get("name")
+    label = str(raw_name) if _is_scalar(raw_name) else None
+
+    def fail(message: str, test: str | None = None) -> CampaignError:
+        return CampaignError(message, campaign=label, test=test, path=yaml_path)
+
+    if "format" not in doc:
+        raise fail(f"missing key 'format' (expected '{FORMAT}')")
+    if doc["format"] != FORMAT:
+        raise fail(f"format is {doc['format']!r}, expected '{FORMAT}'")
+    for key in ("name", "system", "tests"):
+        if key not in doc or doc[key] is None:
+            raise fail(f"missing key '{key}'")
+    if not _is_scalar(raw_name) or str(raw_name).strip() == "":
+        raise fail("'name' must be a non-empty string")
+    name = str(raw_name)
+
+    system = doc["system"]
+    systems = known_systems()
+    if not isinstance(system, str) or system not in systems:
+        raise fail(f"unknown system {system!r}; known systems: {', '.join(systems)}")
+    family = get_system(system)
+
+    known = _parse_known(doc.get("known"), fail)
+
+    raw_tests = doc["tests"]
+    if not isinstance(raw_tests, list):
+        raise fail(f"'tests' must be a list, got {type(raw_tests).__name__}")
+    if not raw_tests:
+        raise fail("'tests' is empty; a campaign needs at least one test")
+
+    tests: list[TestSpec] = []
+    seen: set[str] = set()
+    for index, entry in enumerate(raw_tests):
+        spec = _parse_test(entry, index, family, fail)
+        if spec.id in seen:
+            raise fail("duplicate test id", test=spec.id)
+        seen.add(spec.id)
+        file_path = yaml_path.parent / spec.file
+        if Path(spec.file).suffix.lower() not in DATA_EXTENSIONS:
+            raise CampaignError(
+                f"unsupported file extension {Path(spec.file).suffix!r}; "
+                f"use {' or '.join(DATA_EXTENSIONS)}",
+                campaign=name,
+                test=spec.id,
+                path=file_path,
+            )
+        if not file_path.is_file():
+            raise CampaignError(
+                f"data file not found (file: {spec.file})",
+                campaign=name,
+                test=spec.id,
+                path=file_path,
+            )
+        tests.append(spec)
+
+    extra = {k: v for k, v in doc.items() if k not in _TOP_KEYS}
+    return Campaign(
+        path=yaml_path.parent,
+        name=name,
+        system=system,
+        known=known,
+        tests=tests,
+        extra=extra,
+    )
+
+
+def _parse_known(raw: Any, fail) -> dict[str, float]:
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise fail(f"'known' must be a mapping, got {type(raw).__name__}")
+    known: dict[str, float] = {}
+    for key, value in raw.items():
+        # bool is an int subclass but `true` is never a physical value.
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise fail(f"known value '{key}' is {value!r}, not a number")
+        if not math.isfinite(value):
+            raise fail(f"known value '{key}' is {value!r}, not a finite number")
+        known[str(key)] = float(value)
+    return known
+
+
+def _parse_test(entry: Any, index: int, family: SystemFamily, fail) -> TestSpec:
+    if not isinstance(entry, dict):
+        raise fail(f"tests entry {index + 1} must be a mapping, got {type(entry).__name__}")
+    raw_id = entry.get("id")
+    if raw_id is None:
+        raise fail(f"tests entry {index + 1}: missing key 'id'")
+    if not _is_scalar(raw_id) or str(raw_id).strip() == "":
+        raise fail(f"tests entry {index + 1}: 'id' must be a non-empty string")
+    test_id = str(raw_id)
+
+    for key in _REQUIRED_TEST_KEYS:
+        if entry.get(key) is None:
+            raise fail(f"missing key '{key}'", test=test_id)
+    for key in ("file", "scenario", "motor", "role"):
+        if not isinstance(entry[key], str):
+            raise fail(f"'{key}' must be a string, got {entry[key]!r}", test=test_id)
+
+    scenario = entry["scenario"]
+    if scenario not in family.scenarios:
+        raise fail(
+            f"unknown scenario '{scenario}'; valid for {family.name}: "
+            f"{', '.join(family.scenarios)}",
+            test=test_id,
+        )
+    role = entry["role"]
+    if role not in ROLES:
+        raise fail(f"role is '{role}', expected one of: {', '.join(ROLES)}", test=test_id)
+    motor = entry["motor"]
+    if motor not in family.motor_modes:
+        raise fail(
+            f"motor is '{motor}', expected one of: {', '.join(family.motor_modes)}",
+            test=test_id,
+        )
+    profile = entry["input"]
+    if not isinstance(profile, dict):
+        raise fail(f"'input' must be a mapping, got {profile!r}", test=test_id)
+
+    speed = entry.get("vehicle_speed_kph")
+    if speed is not None:
+        if isinstance(speed, bool) or not isinstance(speed, (int, float)):
+            raise fail(f"vehicle_speed_kph is {speed!r}, not a number", test=test_id)
+        speed = float(speed)
+    mode = entry.get("assist_mode")
+    if mode is not None:
+        mode = str(mode)
+
+    return TestSpec(
+        id=test_id,
+        file=entry["file"],
+        scenario=scenario,
+        input=dict(profile),
+        motor=motor,
+        role=role,
+        vehicle_speed_kph=speed,
+        assist_mode=mode,
+        extra={k: v for k, v in entry.items() if k not in _TEST_KEYS},
+    )
+
+
+def _is_scalar(value: Any) -> bool:
+    return isinstance(value, (str, int, float)) and not isinstance(value, bool)
+
+
+def _load_test_data(
+    file_path: Path, spec: TestSpec, family: SystemFamily, campaign: str
+) -> pd.DataFrame:
+    """Read one test file and check it against the family's channel table."""
+
+    def fail(message: str, column: str | None = None, row: int | None = None) -> CampaignError:
+        return CampaignError(
+            message, campaign=campaign, test=spec.id, column=column, row=row, path=file_path
+        )
+
+    suffix = file_path.suffix.lower()
+    if suffix not in DATA_EXTENSIONS:
+        raise fail(f"unsupported file extension {file_path.suffix!r}")
+    if not file_path.is_file():
+        raise fail(f"data file not found (file: {spec.file})")
+    try:
+        if suffix == ".csv":
+            df = pd.read_csv(file_path)
+        else:
+            df = pd.read_parquet(file_path)
+    except pd.errors.EmptyDataError as exc:
+        raise fail("file is empty (no header line)") from exc
+    except Exception as exc:
+        raise fail(f"cannot read {suffix[1:]} file: {type(exc).__name__}: {exc}") from exc
+
+    df.columns = [str(c) for c in df.columns]
+    present = [ch.name for ch in family.channels if ch.name in df.columns]
+
+    # Known channels must be numeric; name the first cell that is not.
+    for col in present:
+        series = df[col]
+        if pd.api.types.is_numeric_dtype(series) and not pd.api.types.is_bool_dtype(series):
+            df[col] = series.astype("float64")
+            continue
+        numeric = pd.to_numeric(series, errors="coerce")
+        bad = np.flatnonzero((numeric.isna() & series.notna()).to_numpy())
+        if bad.size:
+            i = int(bad[0])
+            raise fail(f"value {series.iloc[i]!r} is not a number", column=col, row=i + 1)
+        df[col] = numeric.astype("float64")
+
+    for col in family.required_channels(spec.scenario):
+        if col not in df.columns:
+            raise fail(f"missing column required for scenario '{spec.scenario}'", column=col)
+
+    if len(df) < MIN_SAMPLES:
+        raise fail(f"only {len(df)} samples; at least {MIN_SAMPLES} are needed")
+
+    for col in present:
+        values = df[col].to_numpy(dtype=float)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            i = int(bad[0])
+            what = "NaN" if np.isnan(values[i]) else ("inf" if values[i] > 0 else "-inf")
+            raise fail(f"value is {what}", column=col, row=i + 1)
+
+    time_col = family.time_channel
+    t = df[time_col].to_numpy(dtype=float)
+    dt = np.diff(t)
+    # dt[i] sits between data rows i+1 and i+2 (1-based); blame the later one.
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise fail(
+            f"time is not strictly increasing ({t[i + 1]:.9g} s after {t[i]:.9g} s)",
+            column=time_col,
+            row=i + 2,
+        )
+    median = float(np.median(dt))
+    bad = np.flatnonzero(np.abs(dt - median) > TIME_UNIFORMITY * median)
+    if bad.size:
+        i = int(bad[0])
+        deviation = 100.0 * abs(dt[i] - median) / median
+        raise fail(
+            f"time is not uniform: step {dt[i]:.6g} s is {deviation:.3g} % off the median "
+            f"{median:.6g} s (limit {100 * TIME_UNIFORMITY:g} %)",
+            column=time_col,
+            row=i + 2,
+        )
+    return df
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_campaign(
+    campaign_dir: str | Path,
+    *,
+    name: str,
+    system: str,
+    known: dict[str, float],
+    tests: list[tuple[TestSpec, pd.DataFrame]],
+    extra: dict | None = None,
+    fmt: str = "csv",
+    overwrite: bool = False,
+) -> Path:
+    """Write a campaign directory atomically.
+
+    Everything is written into a temporary sibling directory first and renamed
+    into place, so readers never see a half-written campaign. With
+    ``overwrite`` an existing target is removed only after the new campaign is
+    complete.
+
+    Parameters
+    ----------
+    campaign_dir
+        Target directory; its parent is created if needed.
+    name, system, known
+        Top-level ``campaign.yaml`` values.
+    tests
+        ``(spec, frame)`` pairs in the order they should appear. Each frame is
+        written to ``tests/<id>.<fmt>`` (``spec.file`` is replaced by that path)
+        without its index. CSV floats are written at full ``repr`` precision so
+        that reading gives back the same values.
+    extra
+        Further top-level keys, written after ``known``.
+    fmt
+        ``"csv"`` or ``"parquet"``.
+    overwrite
+        Replace an existing ``campaign_dir``.
+
+    Returns
+    -------
+    Path
+        The campaign directory.
+
+    Raises
+    ------
+    CampaignError
+        On bad arguments, an existing target without ``overwrite``, or I/O failure.
+    """
+    target = Path(campaign_dir)
+    if fmt not in ("csv", "parquet"):
+        raise CampaignError(f"fmt must be 'csv' or 'parquet', got {fmt!r}", campaign=name)
+    if target.exists() and not overwrite:
+        raise CampaignError("already exists (pass overwrite=True)", campaign=name, path=target)
+    seen: set[str] = set()
+    for spec, frame in tests:
+        _check_writable_id(spec.id, name)
+        if spec.id in seen:
+            raise CampaignError("duplicate test id", campaign=name, test=spec.id)
+        seen.add(spec.id)
+        if not isinstance(frame, pd.DataFrame):
+            raise CampaignError(
+                f"data must be a pandas DataFrame, got {type(frame).__name__}",
+                campaign=name,
+                test=spec.id,
+            )
+
+    doc: dict[str, Any] = {
+        "format": FORMAT,
+        "name": name,
+        "system": system,
+        "known": {str(k): float(v) for k, v in known.items()},
+    }
+    for key, value in (extra or {}).items():
+        if key in _TOP_KEYS:
+            raise CampaignError(f"extra key '{key}' clashes with a format key", campaign=name)
+        doc[key] = value
+    doc["tests"] = [_test_entry(spec, f"tests/{spec.id}.{fmt}", name) for spec, _ in tests]
+
+    tmp = target.parent / f".{target.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        (tmp / "tests").mkdir(parents=True)
+        for spec, frame in tests:
+            out = tmp / "tests" / f"{spec.id}.{fmt}"
+            if fmt == "csv":
+                # Default float formatting is repr: shortest text that reads back exactly.
+                frame.to_csv(out, index=False)
+            else:
+                frame.to_parquet(out, index=False)
+        text = yaml.safe_dump(_plain(doc), sort_keys=False, allow_unicode=True)
+        (tmp / CAMPAIGN_FILE).write_text(text, encoding="utf-8")
+        _swap_into_place(tmp, target)
+    except CampaignError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    except Exception as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise CampaignError(
+            f"cannot write campaign: {type(exc).__name__}: {exc}", campaign=name, path=target
+        ) from exc
+    return target
+
+
+def _check_writable_id(test_id: str, campaign: str) -> None:
+    # The id becomes a file name; refuse anything that would escape tests/.
+    if (
+        not isinstance(test_id, str)
+        or not test_id
+        or test_id.startswith(".")
+        or any(c in test_id for c in "/\\:\0")
+    ):
+        raise CampaignError(
+            "test id must be a non-empty file name without '/', '\\', ':' or a leading '.'",
+            campaign=campaign,
+            test=str(test_id),
+        )
+
+
+def _test_entry(spec: TestSpec, file: str, campaign: str) -> dict[str, Any]:
+    entry: dict[str, Any] = {
+        "id": spec.id,
+        "file": file,
+        "scenario": spec.scenario,
+        "input": dict(spec.input),
+        "motor": spec.motor,
+        "role": spec.role,
+    }
+    if spec.vehicle_speed_kph is not None:
+        entry["vehicle_speed_kph"] = float(spec.vehicle_speed_kph)
+    if spec.assist_mode is not None:
+        entry["assist_mode"] = spec.assist_mode
+    for key, value in spec.extra.items():
+        if key in _TEST_KEYS:
+            raise CampaignError(
+                f"extra key '{key}' clashes with a format key", campaign=campaign, test=spec.id
+            )
+        entry[key] = value
+    return entry
+
+
+def _plain(value: Any) -> Any:
+    """Turn numpy scalars, tuples and paths into types ``yaml.safe_dump`` accepts."""
+    if isinstance(value, dict):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return [_plain(v) for v in value.tolist()]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def _swap_into_place(tmp: Path, target: Path) -> None:
+    if not target.exists():
+        os.replace(tmp, target)
+        return
+    old = target.parent / f".{target.name}.old-{uuid.uuid4().hex[:8]}"
+    os.replace(target, old)
+    try:
+        os.replace(tmp, target)
+    except OSError:
+        os.replace(old, target)  # put the previous campaign back
+        raise
+    if old.is_dir() and not old.is_symlink():
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        old.unlink(missing_ok=True)
+
+
+# --------------------------------------------------------------------------- summary
+
+
+def summarize_campaign(campaign: Campaign) -> str:
+    """Human-readable overview for ``mbst check``.
+
+    Loads any test data not yet loaded (so it raises :class:`CampaignError` on
+    a bad file, like :func:`read_campaign`).
+
+    Returns
+    -------
+    str
+        Name, system, path, known values, a table of tests (id, scenario,
+        motor, role, input kind, duration = last minus first time stamp,
+        sample rate = 1 / median dt, samples, known channels present), counts
+        per scenario and per role, and warnings.
+    """
+    family = campaign.family
+    channel_names = [ch.name for ch in family.channels]
+    lines = [
+        f"campaign: {campaign.name}",
+        f"system:   {campaign.system}",
+        f"path:     {campaign.path}",
+    ]
+    if campaign.known:
+        lines.append("known:")
+        width = max(len(k) for k in campaign.known)
+        lines += [f"  {k:<{width}} = {v:.6g}" for k, v in campaign.known.items()]
+    else:
+        lines.append("known:    (none)")
+    for key, value in campaign.extra.items():
+        lines.append(f"{key}: {value}")
+
+    header = [
+        "id",
+        "scenario",
+        "motor",
+        "role",
+        "input",
+        "duration_s",
+        "rate_hz",
+        "samples",
+        "channels",
+    ]
+    rows = []
+    extras = []
+    for spec in campaign.tests:
+        df = campaign.frame(spec.id)
+        t = df[family.time_channel].to_numpy(dtype=float)
+        dt = campaign.sample_time_s(spec.id)
+        channels = [c for c in channel_names if c in df.columns and c != family.time_channel]
+        rows.append(
+            [
+                spec.id,
+                spec.scenario,
+                spec.motor,
+                spec.role,
+                spec.input_kind or "?",
+                f"{t[-1] - t[0]:.3f}",
+                f"{1.0 / dt:.1f}",
+                str(len(df)),
+                ",".join(channels),
+            ]
+        )
+        other = [c for c in df.columns if c not in channel_names]
+        if other:
+            extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    numeric = {"duration_s", "rate_hz", "samples"}
+
+    def fmt_row(cells: list[str]) -> str:
+        out = [c.rjust(w) if h in numeric else c.ljust(w) for c, w, h in zip(cells, widths, header)]
+        return "  " + "  ".join(out).rstrip()
+
+    lines.append(f"tests ({len(campaign.tests)}):")
+    lines.append(fmt_row(header))
+    lines += [fmt_row(r) for r in rows]
+    lines += extras
+
+    by_scenario = Counter(s.scenario for s in campaign.tests)
+    ordered = [s for s in family.scenarios if s in by_scenario]
+    lines.append("per scenario: " + ", ".join(f"{s} {by_scenario[s]}" for s in ordered))
+    by_role = Counter(s.role for s in campaign.tests)
+    lines.append("per role: " + ", ".join(f"{r} {by_role.get(r, 0)}" for r in ROLES))
+    if not by_role.get("identification"):
+        lines.append("WARNING: no identification test; nothing can be fitted")
+    if not by_role.get("control"):
+        lines.append("WARNING: no control test; correlation of a fitted model cannot be measured")
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""What an engineer reads: figures, markdown pages, summary tables; family reports by name."""

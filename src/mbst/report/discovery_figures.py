@@ -1,0 +1,224 @@
+"""Figures of a discovery run: what the base model gets wrong and what the extension fixes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mbst.discovery.rounds import equation_error, stickslip
+from mbst.report import plots
+from mbst.report.plots import LABELS, MODEL_STYLE, SCALE, motion_reversals, plt
+
+
+def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
+    """Measured vs base vs extended around the reversal where the base model errs most."""
+    controls = [result.base.prepared[t] for t in dict.fromkeys(result.comparison.test)]
+    if not controls:
+        controls = [result.base.prepared[r.id] for r in result.residual_tests[:2]]
+    model = controls[0].model
+    chans = [c for c in model.output_channels if any(c in pt.measured for pt in controls)][:2]
+    fig, axes = plt.subplots(len(controls), len(chans), figsize=(5.2 * len(chans),
+                             2.9 * len(controls)), squeeze=False)
+    models = {m: tw for m, tw in result.twins.items() if m in ("base", "extended", "true")}
+    for i, pt in enumerate(controls):
+        base_tw = result.twins.get("base", {}).get(pt.id) or result.base.twins[pt.id]
+        # the base model's error, each channel in units of its spread
+        err = sum(np.abs(pt.measured[c] - base_tw[c]) / (np.std(pt.measured[c]) or 1.0)
+                  for c in chans if c in pt.measured)
+        revs = motion_reversals(pt.omega_rad_per_s)
+        win = int(round(half_window_s / pt.dt_s))
+        if len(revs):
+            worst = max(revs, key=lambda r: err[r: r + win].max(initial=0.0))
+        else:
+            worst = int(np.argmax(err))
+        lo, hi = max(worst - win, 0), min(worst + 2 * win, len(pt.time_s))
+        sl = slice(lo, hi)
+        for j, ch in enumerate(chans):
+            ax = axes[i][j]
+            if ch not in pt.measured:
+                ax.set_axis_off()
+                continue
+            s = SCALE.get(ch, 1.0)
+            ax.plot(pt.time_s[sl], s * pt.measured[ch][sl], color="black", lw=1.6,
+                    label="measured")
+            for name, tw in models.items():
+                if pt.id in tw and ch in tw[pt.id]:
+                    ax.plot(pt.time_s[sl], s * tw[pt.id][ch][sl], label=name,
+                            **MODEL_STYLE.get(name, {}))
+            # a solid, pale marker: the true model is drawn dotted grey
+            ax.axvline(pt.time_s[worst], color="tab:blue", alpha=0.35, lw=0.8,
+                       label="reversal")
+            plots._style(ax, f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", LABELS[ch])
+    plots._finish(fig, axes, path)
+
+
+def structure_bars(result, path: Path) -> None:
+    """Share of the stage's residual cost each catalogue candidate removes, per round."""
+    rounds = [r for r in result.rounds if r["candidates"]]
+    if not rounds:
+        fig, ax = plt.subplots(figsize=(6, 2))
+        ax.text(0.5, 0.5, "no candidate could be tested", ha="center", va="center")
+        ax.set_axis_off()
+        plots._save(fig, path)
+        return
+    n = max(len(r["candidates"]) for r in rounds)
+    fig, axes = plt.subplots(1, len(rounds), figsize=(6.5 * len(rounds), 0.28 * n + 1.6),
+                             squeeze=False)
+    for ax, r in zip(axes[0], rounds, strict=True):
+        cands = r["candidates"]
+        gains = [100 * max(c["relative_gain"], -5.0 / 100) for c in cands]
+        colors = ["tab:green" if c["key"] == r["accepted"] else "tab:blue" for c in cands]
+        y = np.arange(len(cands))[::-1]
+        ax.barh(y, gains, color=colors)
+        # a refit that ended above the base cost is scored with the effect off (gain 0)
+        ax.set_yticks(y, [f"{c['key']} ({c['stage']})" + (" — refit stuck, off"
+                                                          if c.get("fell_back") else "")
+                          for c in cands], fontsize=7)
+        method = r.get("method")
+        margin = {"stick_slip": stickslip.MIN_GAIN,
+                  "equation_error": equation_error.MIN_GAIN}.get(method, result_margin(result))
+        ax.axvline(100 * margin, color="tab:red", ls="--", lw=1, label="acceptance margin")
+        ax.set_xlabel({"stick_slip": "fast-envelope misfit removed in its stage [%]",
+                       "equation_error": "inverse-model (equation-error) cost removed [%]"
+                       }.get(method, "residual cost removed in its stage [%]"), fontsize=8)
+        acc = r["accepted"] or "none"
+        kind = {"stick_slip": " (stick-slip test)",
+                "equation_error": " (equation-error test)"}.get(method, "")
+        ax.set_title(f"round {r['round']}{kind}: accepted {acc}", fontsize=9)
+        ax.grid(axis="x", alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    plots._save(fig, path)
+
+
+def resolution_bars(result, path: Path) -> bool:
+    """Predicted share of its stage's cost each pair would remove, realistic size and beyond."""
+    res = sorted((r for r in result.resolution if r.sizes and r.sizes[0].multiple == 1.0),
+                 key=lambda r: r.sizes[0].share)
+    if not res:
+        return False
+    fig, ax = plt.subplots(figsize=(11.0, 0.3 * len(res) + 1.8))
+    y = np.arange(len(res))
+    colors = ["tab:green" if r.resolved_from == 1.0 else
+              "tab:orange" if r.resolved_from else "tab:gray" for r in res]
+    ax.barh(y, [100 * r.sizes[0].share for r in res], color=colors)
+    most = max(s.multiple for r in res for s in r.sizes)
+    ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
+               zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
+    ax.set_yticks(y, [f"{r.key} ({r.stage})" + (
+        "" if r.resolved_from == 1.0 else
+        f" — from {r.resolved_from:g}×" if r.resolved_from else
+        f" — not resolved ({100 * r.sizes[-1].share:.0f} %, ΔAIC {r.sizes[-1].aic_delta:.0f}"
+        f" at {r.sizes[-1].multiple:g}×)")
+        for r in res], fontsize=7)
+    ax.axvline(100 * result_margin(result), color="tab:red", ls="--", lw=1,
+               label=f"acceptance margin (and ΔAIC ≤ −{result.settings.min_aic_drop:g})")
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("predicted share of its stage's residual cost removed [%]", fontsize=8)
+    ax.set_title("What these tests can resolve, bar: at the realistic size\ngreen: resolved "
+                 f"there · orange: only larger · gray: not up to {most:g}× or the bound",
+                 fontsize=8)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout(pad=1.5)
+    plots._save(fig, path)
+    return True
+
+
+def result_margin(result) -> float:
+    return float(result.settings.min_relative_gain)
+
+
+def comparison_bars(result, path: Path) -> None:
+    """Control FIT % per model family, per control test and channel."""
+    df = result.comparison
+    if df.empty:
+        return
+    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent",
+                          sort=False)
+    models = list(dict.fromkeys(df.model))
+    fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 4.2))
+    x = np.arange(len(wide))
+    w = 0.8 / len(models)
+    for k, m in enumerate(models):
+        vals = np.clip(wide[m].to_numpy(float), 0, 100)
+        ax.bar(x + k * w - 0.4 + w / 2, vals, w, label=m,
+               color=MODEL_STYLE.get(m, {}).get("color"))
+    ax.set_xticks(x, [f"{t}\n{c}" for t, c in wide.index], fontsize=6)
+    ax.set_ylabel("control FIT [%] (clipped to 0–100)", fontsize=8)
+    lo = np.nanmin(np.clip(wide.to_numpy(float), 0, 100))
+    ax.set_ylim(max(0.0, lo - 5), 100.5)
+    ax.legend(fontsize=7, ncol=len(models), loc="upper center", bbox_to_anchor=(0.5, -0.22))
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_title("held-out control tests: FIT % of each model family", fontsize=9)
+    fig.tight_layout()
+    plots._save(fig, path)
+
+
+def stick_slip(result, path: Path) -> bool:
+    """Fast part and its envelope on the test with the most stick-slip misfit.
+
+    Drawn when the stick-slip test ran: measured vs base vs extended, high-passed
+    (the sawtooth, whose phase no model can repeat) and as √power over the window
+    (what the test compares). Returns whether a figure was written.
+    """
+    from mbst.identify.fitting import simulate_twin
+
+    rec = next((r for r in result.rounds if r.get("method") == "stick_slip"), None)
+    if rec is None or not rec.get("base_misfit"):
+        return False
+    stage = next((c["stage"] for c in rec["candidates"] if c["key"] == rec["accepted"]),
+                 None) or max(rec["base_misfit"], key=rec["base_misfit"].get)
+    ids = [result.base.prepared[r.id] for r in result.residual_tests]
+    tests = result.base.model.stage_tests(stage, ids)
+    if not tests:
+        return False
+    twins = {pt.id: {"base": simulate_twin(pt, result.base.params),
+                     "extended": simulate_twin(pt, result.extended_params)} for pt in tests}
+    pt = max(tests, key=lambda t: stickslip.envelope_misfit(t, twins[t.id]["base"]))
+    ch = next(c for c in pt.model.output_channels if c in pt.measured)
+    s = SCALE.get(ch, 1.0)
+    hp = lambda y: stickslip.highpass(y, pt.dt_s)  # noqa: E731
+    pn = pt.noise.get(ch, 0.0) ** 2 * stickslip.noise_hf_fraction(pt.dt_s, pt.tau_s)
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5.6), sharex=True)
+    axes[0].plot(pt.time_s, s * hp(pt.measured[ch]), color="black", lw=1.0, label="measured")
+    axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(pt.measured[ch], pt.dt_s)),
+                 color="black", lw=1.4, label="measured")
+    for name in ("base", "extended"):
+        y = twins[pt.id][name][ch]
+        axes[0].plot(pt.time_s, s * hp(y), label=name, **MODEL_STYLE.get(name, {}))
+        axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(y, pt.dt_s) + pn),
+                     label=f"{name} + sensor noise", **MODEL_STYLE.get(name, {}))
+    plots._style(axes[0], f"{pt.id}: {LABELS[ch]} above {stickslip.HIGHPASS_HZ:g} Hz "
+                 "(where a stick-slip sawtooth shows; its phase is not repeatable)",
+                 LABELS[ch], "")
+    verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
+    plots._style(axes[1], f"envelope over {stickslip.WINDOW_S:g} s: what the stick-slip test "
+                 f"compares ({stage}, {verdict})", f"rms {LABELS[ch]}")
+    for ax in axes:
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    plots._save(fig, path)
+    return True
+
+
+def write_all(result, figdir: Path) -> None:
+    prepared = result.base.prepared
+    controls = [prepared[t] for t in dict.fromkeys(result.comparison.test)]
+    models = {m: tw for m, tw in result.twins.items()}
+    shown = controls or [prepared[r.id] for r in result.residual_tests]
+    reversal_zoom(result, figdir / "reversal_zoom.png")
+    structure_bars(result, figdir / "structure_test.png")
+    resolution_bars(result, figdir / "resolution.png")
+    stick_slip(result, figdir / "stick_slip.png")
+    comparison_bars(result, figdir / "comparison.png")
+    plots.time_histories(shown, models, figdir / "time_histories.png")
+    plots.hysteresis_loops(shown, {m: models[m] for m in ("base", "extended") if m in models},
+                           figdir / "hysteresis.png")
+    plots.residuals(shown, {m: models[m] for m in ("base", "extended") if m in models},
+                    figdir / "residuals.png")
+    if result.neural_model is not None:
+        from mbst.discovery.evidence.neural import plot_learned
+
+        plot_learned(result.neural_model, result.residual_tests, figdir / "neural_learned.png")

@@ -1,0 +1,1 @@
+"""The electric power steering rig (docs/eps-model.md): channels, parameters, kernel, bench."""

@@ -1,0 +1,1 @@
+"""The EMPS prismatic axis (docs/prismatic-axis.md): channels, model, benchmark, importer."""
