@@ -13,10 +13,10 @@ from mbst.identify.cascade import (
     correlate,
     identify,
     run_cascade,
-    write_identify_outputs,
 )
 from mbst.identify.fitting import prepare_test, simulate_twin
 from mbst.io.campaign import CampaignError, read_campaign
+from mbst.report.identify import write_identify_outputs
 from mbst.systems.eps import assist as eps_assist
 from mbst.systems.eps.bench import (
     DEFAULT_SENSORS,

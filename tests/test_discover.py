@@ -17,15 +17,11 @@ import pytest
 
 import mbst.discovery.pipeline as pipeline_mod
 from mbst.cli import main
-from mbst.discovery.pipeline import (
-    DiscoverSettings,
-    discover,
-    discovery_record,
-    write_discover_outputs,
-)
+from mbst.discovery.pipeline import DiscoverSettings, discover
 from mbst.discovery.rounds.resolution import scaled_size
 from mbst.discovery.rounds.structure import effective_samples, stage_for, start_grid
 from mbst.io.campaign import read_campaign
+from mbst.report.discovery import discovery_record, write_discover_outputs
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 from mbst.systems.eps.model import EPS_MODEL
 from mbst.systems.eps.params import EFFECT_CATALOGUE, EFFECTS

@@ -16,11 +16,13 @@ import pytest
 
 from mbst.cli import main
 from mbst.core.family import get_system
-from mbst.discovery.pipeline import DiscoverSettings, discover, run_discover
+from mbst.discovery.pipeline import DiscoverSettings, discover
 from mbst.identify.cascade import IdentifySettings
 from mbst.io.campaign import CampaignError, read_campaign
+from mbst.report.discovery import run_discover
 from mbst.systems.prismatic import model as P
 from mbst.systems.prismatic.bench import KNOWN, TRUE_BASE, reference, run_prismatic_bench
+from mbst.systems.prismatic.definition import PRISMATIC_MODEL
 from mbst.systems.prismatic.importer import import_emps
 
 EMPS_DIR = Path(os.environ.get("MBST_EMPS_DIR",
@@ -32,7 +34,7 @@ ASYM = {"ball_screw.asymmetric_friction.ratio": 1.1,
 
 
 def _p(**extra):
-    return P.PRISMATIC_MODEL.vector_from({**KNOWN, **TRUE_BASE, **extra})
+    return PRISMATIC_MODEL.vector_from({**KNOWN, **TRUE_BASE, **extra})
 
 
 def _closed_loop_run(p: np.ndarray, seconds: float) -> tuple[np.ndarray, np.ndarray]:
@@ -46,7 +48,7 @@ def _closed_loop_run(p: np.ndarray, seconds: float) -> tuple[np.ndarray, np.ndar
 # --------------------------------------------------------------------------- simulator
 def test_family_is_registered_with_its_model():
     fam = get_system("prismatic-axis")
-    assert fam.model() is P.PRISMATIC_MODEL
+    assert fam.model() is PRISMATIC_MODEL
     assert fam.required_channels("closed_loop") == ["time_s", "position_m", "motor_force_n",
                                                     "position_reference_m"]
     assert "position_reference_m" not in fam.required_channels("open_loop")

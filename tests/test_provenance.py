@@ -19,7 +19,7 @@ def test_installed_package_hash_is_16_hex_and_stable():
     h = source_hash()
     assert re.fullmatch(r"[0-9a-f]{16}", h)
     assert source_hash() == h
-    assert (package_dir() / "provenance.py") in source_files()
+    assert (package_dir() / "io" / "provenance.py") in source_files()
 
 
 def test_edit_changes_hash(tmp_path):

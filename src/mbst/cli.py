@@ -72,8 +72,9 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_identify(args: argparse.Namespace) -> int:
-    from mbst.identify.cascade import IdentifySettings, run_identify
+    from mbst.identify.cascade import IdentifySettings
     from mbst.io.campaign import read_campaign
+    from mbst.report.identify import run_identify
 
     camp = read_campaign(args.campaign)
     if args.multistart < 1:
@@ -89,9 +90,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 
 
 def _cmd_discover(args: argparse.Namespace) -> int:
-    from mbst.discovery.pipeline import DiscoverSettings, run_discover
+    from mbst.discovery.pipeline import DiscoverSettings
     from mbst.identify.cascade import IdentifySettings
     from mbst.io.campaign import read_campaign
+    from mbst.report.discovery import run_discover
 
     camp = read_campaign(args.campaign)
     if args.max_effects < 0:

@@ -50,8 +50,9 @@ class SystemFamily:
     output_channels: tuple[str, ...] = ()
     motor_modes: tuple[str, ...] = ("passive", "assist")
     extras: dict = field(default_factory=dict)
-    # imported on first use: reading a campaign must not compile a simulator
-    model_factory: Callable[[], ModelDefinition] | None = None
+    # the module whose ``MODEL`` is the family's definition, imported on first use:
+    # reading a campaign must not load a simulator (importing one takes ~1 s)
+    model_module: str | None = None
 
     def channel(self, name: str) -> ChannelSpec:
         for ch in self.channels:
@@ -61,9 +62,9 @@ class SystemFamily:
 
     def model(self) -> ModelDefinition:
         """The family's model definition (parameters, catalogue, cascade, simulator)."""
-        if self.model_factory is None:
+        if self.model_module is None:
             raise KeyError(f"system '{self.name}' has no model definition")
-        return self.model_factory()
+        return importlib.import_module(self.model_module).MODEL
 
     def required_channels(self, scenario: str) -> list[str]:
         return [ch.name for ch in self.channels if ch.required_for(scenario)]

@@ -137,9 +137,6 @@ class ModelDefinition:
         Parameters a stage refits although an earlier stage fixed them (seed
         001 Table 1: the dry friction with the assist curve, the viscous
         terms with the active damping).
-    report
-        ``report(identify_result, figure_dir) -> markdown lines``: the
-        family's own figures and tables (the EPS power assist).
     carry_through
         Stages that fit only what they isolate and hand parameters carried from
         a skipped stage on to the next one (the EPS rig's ``suspended``: free
@@ -193,7 +190,6 @@ class ModelDefinition:
     specialise: Callable[[ModelDefinition, Any], ModelDefinition] | None = None
     refines: dict[str, tuple[str, ...]] = field(default_factory=dict)
     carry_through: tuple[str, ...] = ()
-    report: Callable[[Any, Any], list[str]] | None = None
     equation_error: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
     element_speeds: dict[str, str] = field(default_factory=dict)
     simulate_tests: Callable[[list, list[np.ndarray]], list[list[dict]]] | None = None

@@ -60,7 +60,7 @@ def structure_bars(result, path: Path) -> None:
         fig, ax = plt.subplots(figsize=(6, 2))
         ax.text(0.5, 0.5, "no candidate could be tested", ha="center", va="center")
         ax.set_axis_off()
-        plots._save(fig, path)
+        plots.save_figure(fig, path)
         return
     n = max(len(r["candidates"]) for r in rounds)
     fig, axes = plt.subplots(1, len(rounds), figsize=(6.5 * len(rounds), 0.28 * n + 1.6),
@@ -89,7 +89,7 @@ def structure_bars(result, path: Path) -> None:
         ax.grid(axis="x", alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    plots._save(fig, path)
+    plots.save_figure(fig, path)
 
 
 def resolution_bars(result, path: Path) -> bool:
@@ -122,7 +122,7 @@ def resolution_bars(result, path: Path) -> bool:
     ax.grid(axis="x", alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout(pad=1.5)
-    plots._save(fig, path)
+    plots.save_figure(fig, path)
     return True
 
 
@@ -153,7 +153,7 @@ def comparison_bars(result, path: Path) -> None:
     ax.grid(axis="y", alpha=0.3)
     ax.set_title("held-out control tests: FIT % of each model family", fontsize=9)
     fig.tight_layout()
-    plots._save(fig, path)
+    plots.save_figure(fig, path)
 
 
 def stick_slip(result, path: Path) -> bool:
@@ -199,7 +199,7 @@ def stick_slip(result, path: Path) -> bool:
     for ax in axes:
         ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
-    plots._save(fig, path)
+    plots.save_figure(fig, path)
     return True
 
 

@@ -67,7 +67,7 @@ def write(result: Any, out: Path) -> list[str]:
     """Figures ``assist_characteristic.png`` and ``active_damping.png``; markdown lines."""
     import matplotlib.pyplot as plt
 
-    from mbst.report.plots import _save
+    from mbst.report.plots import save_figure
 
     model, p = result.model, result.params
     if not any(pt.spec.motor == "assist" for pt in result.prepared.values()):
@@ -109,7 +109,7 @@ def write(result: Any, out: Path) -> list[str]:
         ins.tick_params(labelsize=6)
         ins.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, out / "assist_characteristic.png")
+    save_figure(fig, out / "assist_characteristic.png")
 
     damp = eps_assist.dampings(model, p)
     if damp:
@@ -126,7 +126,7 @@ def write(result: Any, out: Path) -> list[str]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
         fig.tight_layout()
-        _save(fig, out / "active_damping.png")
+        save_figure(fig, out / "active_damping.png")
 
     lines = ["", "## Power assist (seed 001 Table 1–2)", "",
              f"Characteristic family: {family.upper()}.", "",

@@ -35,7 +35,7 @@ MODEL_STYLE = {
 }
 
 
-def _save(fig, path: Path) -> None:
+def save_figure(fig, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -52,7 +52,7 @@ def _finish(fig, axes, path: Path) -> None:
     """Legend in the first cell (the styles repeat in every cell), then save."""
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _channel_grid(tests: list[PreparedTest], row_height: float):
@@ -127,7 +127,7 @@ def hysteresis_loops(tests: list[PreparedTest], models: dict[str, dict], path: P
     if tests:
         axes[0][0].legend(fontsize=7)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _assist_label(pt: PreparedTest) -> str:
@@ -187,4 +187,4 @@ def filter_effect(tests: list[PreparedTest], path: Path, zoom_s: float = 0.4,
         axes[i][0].axvspan(pt.time_s[win][0], pt.time_s[win][-1], color="tab:orange", alpha=0.15)
         axes[i][0].legend(fontsize=8, loc="upper right")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)

@@ -43,14 +43,9 @@ def eps_family() -> SystemFamily:
         scenarios=SCENARIOS,
         channels=CHANNELS,
         output_channels=OUTPUT_CHANNELS,
-        model_factory=_eps_model,
+        model_module="mbst.systems.eps.model",
     )
 
-
-def _eps_model():
-    from mbst.systems.eps.model import EPS_MODEL
-
-    return EPS_MODEL
 
 
 register(SYSTEM_NAME, eps_family)

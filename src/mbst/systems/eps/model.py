@@ -16,7 +16,6 @@ from scipy.signal import savgol_coeffs, savgol_filter
 from mbst.core.filtering import cubic_window, white_noise_std
 from mbst.core.model import ModelDefinition
 from mbst.core.threads import run_longest_first
-from mbst.report import eps_assist as eps_assist_report
 from mbst.systems.eps import assist as eps_assist
 from mbst.systems.eps import boost_curve as eps_boost_curve
 from mbst.systems.eps import kernel as K
@@ -570,5 +569,7 @@ EPS_MODEL = ModelDefinition(
     evidence_methods=("sparse", "neural", "stick_slip"),
     # the column's speed is the imposed input; the tires' has no internal signal
     element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},
-    report=lambda result, figdir: eps_assist_report.write(result, figdir),
 )
+
+# the family's definition, as the registry looks it up (core.family.SystemFamily.model)
+MODEL = EPS_MODEL

@@ -17,6 +17,7 @@ import pandas as pd
 from mbst.io.campaign import TestSpec, write_campaign
 from mbst.systems.prismatic import model as P
 from mbst.systems.prismatic.channels import SYSTEM_NAME
+from mbst.systems.prismatic.definition import PRISMATIC_MODEL
 
 KNOWN = {"drive_gain_n_per_v": 35.15, "position_loop_gain_per_s": 160.18,
          "velocity_loop_gain_v_s_per_m": 243.45, "drive_command_limit_v": 10.0}
@@ -64,7 +65,7 @@ def run_prismatic_bench(out: str | Path, effects: dict[str, float] | None = None
     viscous_ratio": 1.45}``) on top of the base truth.
     """
     out = Path(out)
-    p = P.PRISMATIC_MODEL.vector_from({**KNOWN, **TRUE_BASE, **(effects or {})})
+    p = PRISMATIC_MODEL.vector_from({**KNOWN, **TRUE_BASE, **(effects or {})})
     rng = np.random.default_rng(seed)
     q_ref = reference(duration_s, dt_s)
     n = len(q_ref)
@@ -85,5 +86,5 @@ def run_prismatic_bench(out: str | Path, effects: dict[str, float] | None = None
                           tests=tests, overwrite=True)
     (out / "truth.json").write_text(json.dumps(
         {"system": SYSTEM_NAME, "seed": seed, "effects": effects or {},
-         "params": P.PRISMATIC_MODEL.as_dict(p)}, indent=2))
+         "params": PRISMATIC_MODEL.as_dict(p)}, indent=2))
     return camp

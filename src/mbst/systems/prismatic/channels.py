@@ -40,14 +40,9 @@ def prismatic_family() -> SystemFamily:
         input_channel="position_reference_m",
         output_channels=OUTPUT_CHANNELS,
         motor_modes=("drive",),
-        model_factory=_prismatic_model,
+        model_module="mbst.systems.prismatic.definition",
     )
 
-
-def _prismatic_model():
-    from mbst.systems.prismatic.model import PRISMATIC_MODEL
-
-    return PRISMATIC_MODEL
 
 
 register(SYSTEM_NAME, prismatic_family)

@@ -29,8 +29,7 @@ import numba as nb
 import numpy as np
 from scipy.signal import butter, decimate, filtfilt
 
-from mbst.core.model import EffectSpec, ModelDefinition, ParamSpec
-from mbst.systems.prismatic.channels import OUTPUT_CHANNELS, SYSTEM_NAME
+from mbst.core.model import EffectSpec, ParamSpec
 
 if TYPE_CHECKING:
     from mbst.identify.fitting import PreparedTest
@@ -367,31 +366,3 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
                   "decimate ×10 on every signal, least squares",
     }
     return out
-
-
-def benchmark(base, p_ext: np.ndarray) -> dict:
-    """The EMPS figures of merit on the control tests, as the authors define them."""
-    from mbst.systems.prismatic.benchmark import benchmark_record
-
-    return benchmark_record(base, p_ext)
-
-
-PRISMATIC_MODEL = ModelDefinition(
-    name=SYSTEM_NAME,
-    param_specs=PARAM_SPECS,
-    catalogue=CATALOGUE,
-    cascade=CASCADE,
-    offset_channels={},
-    output_channels=OUTPUT_CHANNELS,
-    simulate_batch=simulate_batch,
-    prepare_inputs=prepare_inputs,
-    pre_identify=pre_identify,
-    carries_over=lambda name: True,
-    component_scenarios={"ball_screw": ("closed_loop", "open_loop"),
-                         "drive": ("closed_loop", "open_loop")},
-    hysteresis=("rate:position_m", "motor_force_n", "velocity [mm/s] (measured)",
-                "motor force [N]", 1e3),
-    evidence_methods=(),
-    benchmark=benchmark,
-    equation_error=equation_error,
-)

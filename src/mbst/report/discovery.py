@@ -1,0 +1,208 @@
+"""What ``mbst discover`` writes: ``discovery.json`` and the tables, figures and page beside it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mbst.core.model import ModelDefinition
+from mbst.discovery.pipeline import FORMAT, DiscoverSettings, DiscoveryResult, discover
+from mbst.discovery.residuals import dominant_regions
+from mbst.discovery.rounds.resolution import Resolution
+from mbst.io.campaign import Campaign
+from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
+from mbst.report import discovery_figures as figures
+
+
+# --------------------------------------------------------------------------------------
+# outputs
+# --------------------------------------------------------------------------------------
+def _control_fit(df: pd.DataFrame, model: str) -> dict:
+    out: dict[str, dict[str, float]] = {}
+    for r in df[df.model == model].itertuples():
+        out.setdefault(r.test, {})[r.channel] = round(float(r.fit_percent), 3)
+    return out
+
+
+def _model_params(p: np.ndarray, effects: list[str], model: ModelDefinition
+                  ) -> dict[str, float]:
+    active = {n for k in effects for n in model.effects[k].free}
+    return {s.name: float(p[i]) for i, s in enumerate(model.param_specs)
+            if s.kind in ("base", "offset", "known") or s.name in active}
+
+
+def discovery_record(result: DiscoveryResult) -> dict:
+    """``discovery.json`` in the format of campaign-format.md."""
+    keys = [f"{f.effect}:{f.component}" for f in result.findings]
+    return {
+        "format": FORMAT,
+        "campaign": result.campaign,
+        "base": {"params": _model_params(result.base.params, [], result.base.model),
+                 "control_fit_percent": _control_fit(result.comparison, "base")},
+        "findings": [f.record() for f in result.findings],
+        "extended": {"params": _model_params(result.extended_params, keys, result.base.model),
+                     "control_fit_percent": _control_fit(result.comparison, "extended")},
+        "gain": result.gain,
+        "acceptance": {"min_relative_gain": result.settings.min_relative_gain,
+                       "min_aic_drop": result.settings.min_aic_drop,
+                       "max_effects": result.settings.max_effects},
+        "rounds": result.rounds,
+        "residual_regions": dominant_regions(result.locations, 0.0)[:8],
+        "sparse_regression": result.sparse,
+        "neural_residual": result.neural,
+        "comparison_mean_fit_percent": {
+            m: round(float(v), 3)
+            for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
+        },
+        "resolution": [r.record() for r in result.resolution],
+        "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
+        "wall_s": round(result.wall_s, 2),
+        "system": result.base.model.name,
+        "vector": result.base.model.as_dict(result.extended_params),
+    }
+
+
+def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
+    write_json(out / "discovery.json", discovery_record(result))
+    if result.benchmark is not None:
+        write_json(out / "benchmark.json", result.benchmark)
+    result.comparison.to_csv(out / "comparison.csv", index=False, float_format="%.4f")
+    rows = [{"round": r["round"], **{k: v for k, v in c.items() if k != "headline"},
+             "headline": json.dumps(c["headline"])} for r in result.rounds
+            for c in r["candidates"]]
+    pd.DataFrame(rows).to_csv(out / "structure_test.csv", index=False, float_format="%.6g")
+    pd.DataFrame(result.locations).to_csv(out / "residual_locations.csv", index=False,
+                                          float_format="%.4f")
+    resolution_table(result.resolution).to_csv(out / "resolution.csv", index=False,
+                                               float_format="%.6g")
+    figdir = out / "figures"
+    figdir.mkdir(parents=True, exist_ok=True)
+    figures.write_all(result, figdir)
+    write_markdown(out / "discovery.md", markdown_summary(result))
+
+
+def markdown_summary(result: DiscoveryResult) -> str:
+    lines = [f"# Discovery on `{result.campaign}`", "",
+             f"{len(result.rounds)} round(s) of the structure test in {result.wall_s:.0f} s.", ""]
+    if result.findings:
+        lines += ["| # | effect | component | parameters | confidence |", "|---|---|---|---|---|"]
+        for i, f in enumerate(result.findings, 1):
+            pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
+            where = " or ".join([f.component, *f.indistinguishable_from])
+            lines.append(f"| {i} | {f.effect} | {where} | {pars} | {f.confidence:.2f} |")
+        lines += [""] + [f"- **{f.effect} / {f.component}**: {f.evidence}"
+                         for f in result.findings]
+    else:
+        lines.append("No finding: the base model explains the identification tests down to "
+                     "the noise floor of the catalogue" + (
+                         " (of what these tests can resolve: see below)."
+                         if result.resolution else "."))
+    for r in result.rounds:
+        if r.get("reason"):
+            lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
+    if result.resolution:
+        lines += resolution_lines(result)
+    lines += ["", "## Control tests (held out): FIT %", ""]
+    wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
+                                         values="fit_percent", sort=False)
+    models = list(dict.fromkeys(result.comparison.model))
+    lines += ["| test | channel | " + " | ".join(models) + " |",
+              "|---|---|" + "---|" * len(models)]
+    for (t, ch), row in wide.iterrows():
+        lines.append(f"| {t} | {ch} | " + " | ".join(f"{row[m]:.1f}" for m in models) + " |")
+    if result.benchmark and "published" in result.benchmark:
+        lines += benchmark_table(result.benchmark)
+    return "\n".join(lines) + "\n"
+
+
+def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
+    """One row per (pair, size) of the predicted scores (``resolution.csv``)."""
+    columns = ["effect", "component", "stage", "multiple_of_realistic_size",
+               "predicted_relative_gain", "predicted_aic_delta", "resolved"]
+    if not resolution:
+        return pd.DataFrame(columns=columns)
+    return pd.DataFrame([
+        {"effect": r.effect, "component": r.component, "stage": r.stage,
+         "multiple_of_realistic_size": s.multiple,
+         **{f"size.{k}": v for k, v in s.values.items()},
+         "predicted_relative_gain": s.share, "predicted_aic_delta": s.aic_delta,
+         "resolved": r.resolved_from is not None and s.multiple >= r.resolved_from}
+        for r in resolution for s in r.sizes])
+
+
+def resolution_lines(result: DiscoveryResult) -> list[str]:
+    """The report's section: which pairs these tests can show, and from which size."""
+    st = result.settings
+    lines = ["", "## What these tests can resolve", "",
+             "Predicted share of its stage's residual cost each catalogue pair would remove if "
+             "the rig had it at its realistic size (the twin with the effect minus the twin "
+             "without, less what the stage's parameters absorb; `resolution.csv`), and the "
+             f"smallest size that clears the margins ({100 * st.min_relative_gain:.0f} % and "
+             f"ΔAIC ≤ −{st.min_aic_drop:.0f}). An estimate: a pair marked *not resolved* can "
+             "be in the rig without any finding here; longer or other tests would be needed "
+             "(figure: `figures/resolution.png`).",
+             "", "| effect | component | stage | share at realistic size | ΔAIC | "
+             "resolved from |", "|---|---|---|---|---|---|"]
+    # the blind spots first, then the pairs that need the largest size
+    model = result.base.model
+    for r in sorted(result.resolution, key=lambda r: (r.stage is not None,
+                                                      r.resolved_from is not None,
+                                                      -(r.resolved_from or 0), r.key)):
+        if r.stage is None:
+            where = " or ".join(model.component_scenarios.get(r.component, ())) or "–"
+            lines.append(f"| {r.effect} | {r.component} | – | – | – | **not tested**: no "
+                         f"identification test where it acts ({where}) |")
+            continue
+        one = next((s for s in r.sizes if s.multiple == 1.0), None)
+        if one is None:  # the simulator could not run the realistic size
+            continue
+        if r.resolved_from is None:
+            last = r.sizes[-1]
+            where = ("**not resolved** up to " + ", ".join(
+                f"{k} = {v:.3g}" for k, v in last.values.items() if k in r.size_parameters))
+        else:
+            s = next(s for s in r.sizes if s.multiple == r.resolved_from)
+            where = ("realistic size" if s.multiple == 1.0 else f"{s.multiple:g}× (" + ", ".join(
+                f"{k} = {v:.3g}" for k, v in s.values.items() if k in r.size_parameters) + ")")
+        lines.append(f"| {r.effect} | {r.component} | {r.stage} | {100 * one.share:.1f} % | "
+                     f"{one.aic_delta:.0f} | {where} |")
+    return lines
+
+
+def benchmark_table(bench: dict) -> list[str]:
+    """The family's published figures of merit next to ours (benchmark.json)."""
+    base = bench.get("base", {})
+    authors = bench.get("authors_parameters_here", {})
+    lines = ["", f"## Published benchmark measures on `{bench.get('test')}`", "",
+             "| measure | published | source | authors' parameters, our code | base | extended |",
+             "|---|---|---|---|---|---|"]
+    for key, pub in bench["published"].items():
+        ext = bench.get(key)
+        b = base.get(key)
+        a = authors.get(key)
+        fmt = lambda v: "–" if v is None else f"{v:.4g}"
+        lines.append(f"| {key} | {pub['value']:.4g} | {pub['model']} | {fmt(a)} | {fmt(b)} | "
+                     f"{fmt(ext)} |")
+    lines += ["", "Errors in %, lower is better; FIT in %, higher is better. Definitions in "
+              "`benchmark.json`."]
+    key = "open_loop_fit_percent_test"
+    if f"{key}_output_error_parameters" in bench:
+        fmt = lambda v: "–" if v is None else f"{v:.4g}"
+        lines += ["", f"Open-loop FIT: base and extended parameters refitted by open-loop "
+                  "simulation error on the identification run (`open_loop_parameters`); with "
+                  "the cascade's output-error parameters it is "
+                  f"{fmt(base.get(f'{key}_output_error_parameters'))} (base) and "
+                  f"{fmt(bench[f'{key}_output_error_parameters'])} (extended)."]
+    return lines
+
+
+def run_discover(campaign: Campaign, out_dir: str | Path,
+                 settings: DiscoverSettings | None = None) -> DiscoveryResult:
+    """``mbst discover``: everything into ``out_dir``, atomically."""
+    result = discover(campaign, settings)
+    with atomic_output_dir(out_dir) as tmp:
+        write_discover_outputs(result, tmp)
+    return result
