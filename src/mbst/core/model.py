@@ -118,9 +118,12 @@ class ModelDefinition:
         loop plot engineers read (steering angle vs torque for EPS).
     evidence_methods
         Which regressions run beside the structure test (``sparse``, ``neural``):
-        their libraries are built from this family's internal states; and
-        ``stick_slip``, the phase-free test for Stribeck friction when the
-        output-error structure test finds nothing (``discovery/stickslip.py``).
+        their libraries are built from this family's internal states.
+    discovery_rounds
+        The discovery rounds this family runs, in order (``discovery.pipeline.ROUNDS``):
+        ``structure`` (the catalogue's output-error test), ``stick_slip`` (the
+        phase-free test for Stribeck friction), ``equation_error`` (for families with
+        an inverse model, ``equation_error`` below), ``resolution``.
     benchmark
         ``benchmark(base_result, extended_params) -> dict`` of family-specific
         figures of merit (EMPS: the published error measures), written as
@@ -184,6 +187,7 @@ class ModelDefinition:
     component_scenarios: dict[str, tuple[str, ...]] = field(default_factory=dict)
     hysteresis: tuple[str, str, str, str, float] | None = None
     evidence_methods: tuple[str, ...] = ("sparse", "neural")
+    discovery_rounds: tuple[str, ...] = ("structure", "resolution")
     benchmark: Callable[..., dict] | None = None
     stages_of: Callable[[Any], tuple[str, ...]] = lambda pt: (pt.scenario,)
     informed_by: Callable[[str, list], bool] = lambda name, tests: True

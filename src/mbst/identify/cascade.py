@@ -74,6 +74,17 @@ class StageResult:
 
 
 @dataclass
+class Cascade:
+    """What ``run_cascade`` found: the parameters and how each stage got them."""
+
+    params: np.ndarray
+    stages: list[StageResult]
+    preid: dict
+    warnings: list[str]
+    prepared: dict[str, PreparedTest]
+
+
+@dataclass
 class IdentifyResult:
     campaign: str
     params: np.ndarray
@@ -119,7 +130,7 @@ def run_cascade(
     base: np.ndarray | None = None,
     extra_free: dict[str, tuple[str, ...]] | None = None,
     only: set[str] | None = None,
-) -> tuple[np.ndarray, list[StageResult], dict, list[str], dict[str, PreparedTest]]:
+) -> Cascade:
     """Fit the identification tests stage by stage; return the parameter vector and records.
 
     ``extra_free`` adds parameters (e.g. of an inserted effect) to the stage
@@ -215,7 +226,7 @@ def run_cascade(
         if only is None or n in only:
             warnings.append(f"'{n}' could not be identified: no test of a scenario that "
                             "informs it")
-    return p, stages, preid, warnings, prepared
+    return Cascade(p, stages, preid, warnings, prepared)
 
 
 def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest], free: list[str],
@@ -290,17 +301,27 @@ def correlate(
     return pd.DataFrame(rows, columns=cols), twins
 
 
-def identify(campaign: Campaign, settings: IdentifySettings | None = None) -> IdentifyResult:
-    """Run the cascade and correlate on the held-out control tests."""
+def identify(campaign: Campaign, settings: IdentifySettings | None = None,
+             controls: bool = True) -> IdentifyResult:
+    """Run the cascade and correlate on the held-out control tests.
+
+    ``controls=False`` leaves the control tests alone (discovery's base model: they
+    are simulated only once everything is decided).
+    """
     settings = settings or IdentifySettings()
     t0 = time.perf_counter()
-    p, stages, preid, warnings, prepared = run_cascade(campaign, settings)
-    controls = [prepared[s.id] for s in campaign.control_tests()]
+    fit = run_cascade(campaign, settings)
+    p, prepared, warnings = fit.params, fit.prepared, fit.warnings
+    id_fit, id_twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
     if not controls:
+        return IdentifyResult(campaign.name, p, fit.stages, fit.preid, warnings,
+                              id_fit.iloc[0:0], id_fit, time.perf_counter() - t0, prepared,
+                              id_twins, campaign.model())
+    control_tests = [prepared[s.id] for s in campaign.control_tests()]
+    if not control_tests:
         warnings.append("the campaign has no control test: the fit cannot be correlated "
                         "on held-out data")
-    corr, twins = correlate(controls, p)
-    id_fit, id_twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
+    corr, twins = correlate(control_tests, p)
     twins.update(id_twins)
-    return IdentifyResult(campaign.name, p, stages, preid, warnings, corr, id_fit,
+    return IdentifyResult(campaign.name, p, fit.stages, fit.preid, warnings, corr, id_fit,
                           time.perf_counter() - t0, prepared, twins, campaign.model())

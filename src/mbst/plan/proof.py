@@ -132,10 +132,9 @@ def _cascade(cfg: PlanConfig, camp, p_true: np.ndarray, seed: int) -> _Identifie
     settings = IdentifySettings(tau_s=TAU_S, seed=seed, multistart=cfg.proof_multistart,
                                 joint_refinement=cfg.proof_joint_refinement,
                                 extra_starts=PROOF_EXTRA_STARTS, prior=prior)
-    p, stages, _, warnings, prepared = run_cascade(camp, settings, base=p,
-                                                   only=set(cfg.unknown_names))
-    std = {n: v for st in stages for n, v in st.std_error.items()}
-    return _Identified(p, std, prepared, warnings, time.perf_counter() - t0)
+    fit = run_cascade(camp, settings, base=p, only=set(cfg.unknown_names))
+    std = {n: v for st in fit.stages for n, v in st.std_error.items()}
+    return _Identified(fit.params, std, fit.prepared, fit.warnings, time.perf_counter() - t0)
 
 
 def _identify(cfg: PlanConfig, sens: Sensitivity, plan: Plan, p_true: np.ndarray, seed: int,

@@ -14,6 +14,7 @@ cost it removes.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -21,6 +22,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from mbst.core.model import ModelDefinition
+from mbst.discovery.state import DiscoveryState, Finding
+from mbst.identify.cascade import run_cascade
 from mbst.identify.fitting import PreparedTest
 
 # Share of the base's equation-error cost an effect must remove. Clean prismatic bench
@@ -93,3 +96,70 @@ def equation_error_test(model: ModelDefinition, tests: list[PreparedTest], p: np
             params=q))
     scores.sort(key=lambda s: -s.relative_gain)
     return cost_base, p_base, scores
+
+
+def equation_error_round(state: DiscoveryState) -> None:
+    """The inverse-model structure test, after the output-error rounds found nothing more.
+
+    The inverse model names and sizes the effect; the cascade then refits the base
+    around it.
+    """
+    if not state.room_for_more():
+        return
+    t0 = time.perf_counter()
+    model = state.model
+    base_free = list(dict.fromkeys(
+        [n for _, names in model.cascade for n in names]
+        + [n for k in state.accepted for n in model.effects[k].free]))
+    rec, finding, p_eq = _equation_error_record(model, state.ids, state.p, base_free,
+                                                set(state.accepted), state.rounds)
+    state.rounds.append(rec)
+    if finding is not None:
+        state.accepted.append(rec["accepted"])
+        state.findings.append(finding)
+        state.p = run_cascade(state.campaign, state.settings.identify, base=p_eq,
+                              extra_free=state.extra_free).params
+        state.refit_cost()
+    state.timings["equation_error_s"] = time.perf_counter() - t0
+
+
+def _equation_error_record(model: ModelDefinition, ids: list[PreparedTest], p: np.ndarray,
+                           base_free: list[str], accepted: set[str], rounds: list[dict]
+                           ) -> tuple[dict, Finding | None, np.ndarray]:
+    """The round's record, the finding (or None) and the parameter vector with the named
+    effect at its equation-error size (the rest as ``p``)."""
+    cost_base, _, scores = equation_error_test(model, ids, p, base_free, accepted)
+    rec = {"round": len(rounds) + 1, "method": "equation_error", "base_cost": cost_base,
+           "candidates": [{**s.record(), "stage": "inverse model"} for s in scores],
+           "accepted": None, "reason": ""}
+    if not scores or scores[0].relative_gain < MIN_GAIN:
+        top = scores[0] if scores else None
+        rec["reason"] = ("equation error (inverse model): " + (
+            f"best candidate {top.key} removes {100 * top.relative_gain:.1f} % of the base's "
+            f"cost" if top else "no candidate") + f"; the margin is {100 * MIN_GAIN:.0f} %")
+        return rec, None, p
+    best = scores[0]
+    rec["accepted"] = best.key
+    spec = model.effects[best.key]
+    p_new = model.vector_from({n: best.params[model.param_index[n]] for n in spec.free}, base=p)
+    total = sum(s.relative_gain for s in scores)
+    pars = ", ".join(f"{k} {v:.3g}" for k, v in best.headline.items())
+    parts = [f"equation error (the inverse model's force residual on the moving samples of "
+             f"the identification tests): inserting {best.effect} in {best.component} "
+             f"({pars}) removed {100 * best.relative_gain:.1f} % of the base's cost (margin "
+             f"{100 * MIN_GAIN:.0f} %; clean bench campaigns ≤ 3.2 %)"]
+    if len(scores) > 1:
+        parts.append(f"runner-up {scores[1].key} removed {100 * scores[1].relative_gain:.1f} %")
+    seen = next((c for r in reversed(rounds) if r.get("method") is None
+                 for c in r.get("candidates", []) if c["key"] == best.key), None)
+    if seen is not None:
+        parts.append(f"the output-error structure test saw {100 * seen['relative_gain']:.1f} "
+                     f"% of its {seen['stage']} cost (below its margin)")
+    finding = Finding(
+        effect=best.effect, component=best.component,
+        parameters={h: float(p_new[model.param_index[n]]) for h, n in spec.headline.items()},
+        confidence=best.relative_gain / total if total > 0 else 0.0,
+        evidence="; ".join(parts), stage="inverse model", relative_gain=best.relative_gain,
+        aic_delta=None, cv={"folds": 0, "criterion": "equation error"},
+    )
+    return rec, finding, p_new

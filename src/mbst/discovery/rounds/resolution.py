@@ -35,12 +35,14 @@ but the envelope test (discovery step 4b) names them.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from mbst.core.model import EffectSpec, ModelDefinition
-from mbst.discovery.rounds.structure import StageScorer, aic_delta, stage_for
+from mbst.discovery.state import DiscoveryState
+from mbst.discovery.structure import StageScorer, aic_delta, stage_for
 from mbst.identify.fitting import PreparedTest, twins_of_tests
 
 # multiples of the catalogue's realistic size tried (each clipped to the parameter's bounds)
@@ -218,3 +220,14 @@ def campaign_resolution(id_tests: list[PreparedTest], p: np.ndarray, scales: dic
         r.resolved_from = next((s.multiple for s in r.sizes
                                 if s.clears(min_gain, min_aic_drop)), None)
     return out
+
+
+def resolution_round(state: DiscoveryState) -> None:
+    """What else these tests could have shown, against the model as it stands."""
+    t0 = time.perf_counter()
+    settings = state.settings
+    state.resolution = campaign_resolution(
+        state.ids, state.p, state.scales, state.cascade_free, settings.min_relative_gain,
+        settings.min_aic_drop, exclude=set(state.accepted),
+        decimate=settings.identify.decimate, reset=state.compensating())
+    state.timings["resolution_s"] = time.perf_counter() - t0

@@ -34,6 +34,7 @@ from scipy.signal import butter, sosfiltfilt
 
 from mbst.core.filtering import exponential_filter
 from mbst.core.model import EffectSpec, ModelDefinition
+from mbst.discovery.state import DiscoveryState, Finding
 from mbst.identify.fitting import PreparedTest, _twins_batch
 
 EFFECT = "stribeck_friction"
@@ -217,7 +218,7 @@ def stick_slip_test(id_tests: list[PreparedTest], base: np.ndarray,
     within ``TIE_FACTOR`` of the best are ordered by how typical their fitted
     size is for the element (look-alikes that move as one body fit alike).
     """
-    from mbst.discovery.rounds.structure import stage_for
+    from mbst.discovery.structure import stage_for
 
     model = id_tests[0].model
     scenarios = {st for pt in id_tests for st in model.stages_of(pt)}
@@ -265,3 +266,77 @@ def rank(scores: list[StickSlipScore]) -> list[StickSlipScore]:
         first.decided_by = "typical size" if first in tied and inside[0] is by_misfit[0] \
             else "range"
     return ordered
+
+
+def stick_slip_round(state: DiscoveryState) -> None:
+    """The phase-free Stribeck test, after the output-error rounds found nothing more."""
+    if not state.room_for_more():
+        return
+    t0 = time.perf_counter()
+    rec, finding, p = _stick_slip_record(state.ids, state.p, set(state.accepted), state.rounds)
+    state.rounds.append(rec)
+    if finding is not None:
+        state.accepted.append(rec["accepted"])
+        state.findings.append(finding)
+        state.p = p
+        state.refit_cost()
+    state.timings["stick_slip_s"] = time.perf_counter() - t0
+
+
+def _stick_slip_record(ids: list[PreparedTest], p: np.ndarray, accepted: set[str],
+                       rounds: list[dict]) -> tuple[dict, Finding | None, np.ndarray]:
+    base_misfit, scores = stick_slip_test(ids, p, exclude=accepted)
+    rec = {"round": len(rounds) + 1, "method": "stick_slip",
+           "base_misfit": {k: round(v, 4) for k, v in base_misfit.items()},
+           "candidates": [s.record() for s in scores], "accepted": None, "reason": ""}
+    worst = max(base_misfit.items(), key=lambda kv: kv[1], default=("", 0.0))
+    if not scores:
+        rec["reason"] = (f"no stick-slip: the fast (> {HIGHPASS_HZ:g} Hz) envelope "
+                         f"of the base model fits to {worst[1]:.2f} noise-power units at worst "
+                         f"({worst[0]}); the threshold is {MIN_BASE_MISFIT:g}")
+        return rec, None, p
+    best = scores[0]
+    if best.relative_gain < MIN_GAIN or best.wins * 2 <= len(best.per_test):
+        rec["reason"] = (f"best Stribeck candidate {best.key} removes "
+                         f"{100 * best.relative_gain:.0f} % of the envelope misfit and lowers it "
+                         f"on {best.wins}/{len(best.per_test)} tests; the margin is "
+                         f"{100 * MIN_GAIN:.0f} % on most tests")
+        return rec, None, p
+    rec["accepted"] = best.key
+    runner = next((s for s in scores[1:] if s.stage == best.stage), None)
+    confidence = best.relative_gain * best.wins / len(best.per_test)
+    if best.decided_by != "misfit":
+        confidence *= 0.5
+    pars = ", ".join(f"{k} {v:.3g}" for k, v in best.headline.items())
+    parts = [
+        f"stick-slip: the base model leaves {best.misfit_base:.1f} noise-power units of "
+        f"misfit in the fast (> {HIGHPASS_HZ:g} Hz) envelope of the {best.stage} "
+        f"tests (clean campaigns < {MIN_BASE_MISFIT:g})",
+        f"Stribeck friction in {best.component} ({pars}) removes "
+        f"{100 * best.relative_gain:.0f} % of it, lower on {best.wins}/{len(best.per_test)} tests",
+    ]
+    if runner is not None:
+        parts.append(f"runner-up {runner.key} removes {100 * runner.relative_gain:.0f} %"
+                     + (f" with {', '.join(runner.at_bound)} on its bound"
+                        if runner.at_bound else ""))
+    if best.decided_by == "typical size":
+        parts.append("a near tie, named by the more typical size (the elements move as one "
+                     "body in this stage: a motor angle sensor or a blocked-rack test separates "
+                     "them)")
+    elif best.decided_by == "range":
+        parts.append("the better-fitting look-alike needs a size on the edge of its range")
+    prev = next((r for r in reversed(rounds) if r.get("candidates")), None)
+    if prev is not None and prev["candidates"]:
+        top = prev["candidates"][0]
+        parts.append(f"the output-error structure test cannot see it (the sawtooth's phase is "
+                     f"not repeatable): its best candidate {top['key']} removed "
+                     f"{100 * top['relative_gain']:.1f} %")
+    finding = Finding(
+        effect=best.effect, component=best.component, parameters=best.headline,
+        confidence=confidence, evidence="; ".join(parts), stage=best.stage,
+        relative_gain=best.relative_gain, aic_delta=None,
+        cv={"folds": len(best.per_test), "wins": best.wins, "criterion": "envelope misfit",
+            "per_test": {k: {"misfit_base": b, "misfit": c}
+                         for k, (b, c) in best.per_test.items()}},
+    )
+    return rec, finding, best.params.copy()

@@ -566,7 +566,8 @@ EPS_MODEL = ModelDefinition(
     informed_by=eps_assist.informed_by,
     specialise=eps_assist.specialise,
     carry_through=("suspended",),
-    evidence_methods=("sparse", "neural", "stick_slip"),
+    evidence_methods=("sparse", "neural"),
+    discovery_rounds=("structure", "stick_slip", "resolution"),
     # the column's speed is the imposed input; the tires' has no internal signal
     element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},
 )

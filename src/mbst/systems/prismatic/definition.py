@@ -32,6 +32,7 @@ PRISMATIC_MODEL = ModelDefinition(
     hysteresis=("rate:position_m", "motor_force_n", "velocity [mm/s] (measured)",
                 "motor force [N]", 1e3),
     evidence_methods=(),
+    discovery_rounds=("structure", "equation_error", "resolution"),
     benchmark=benchmark_record,
     equation_error=equation_error,
 )

@@ -102,26 +102,6 @@ def start_grid(spec: EffectSpec, model: ModelDefinition) -> list[dict[str, float
     return [dict(zip(spec.free, combo, strict=True)) for combo in itertools.product(*axes)]
 
 
-def compensating_parameters(p: np.ndarray, names: list[str], model: ModelDefinition,
-                            factor: float = 3.0) -> dict[str, float]:
-    """Base parameters far from their typical value, with that typical value.
-
-    A base model that lacks an effect hides it by driving parameters to
-    unphysical values (gear stiffness 14× too soft, a damping at zero); the
-    structure test restarts those at the typical value so the inserted effect
-    can take over what they were compensating.
-    """
-    out = {}
-    for n in names:
-        spec = model.spec(n)
-        if spec.kind != "base" or spec.default <= 0:
-            continue
-        v = p[model.param_index[n]]
-        if not (spec.default / factor <= v <= spec.default * factor):
-            out[n] = spec.default
-    return out
-
-
 def effective_samples(residuals: list[np.ndarray]) -> float:
     """Number of independent samples in coloured residuals (integrated autocorrelation).
 

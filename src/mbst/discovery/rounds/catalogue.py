@@ -1,0 +1,180 @@
+"""The structure-test rounds: insert each catalogue candidate, refit its stage, accept the best.
+
+One round per effect, up to ``max_effects``: the best candidate must clear the margins
+(``acceptance.margin_shortfall``), win leave-one-test-out cross-validation in most folds
+and still lower the identification cost once the whole cascade is refitted with it
+(``extension.extend``). Later rounds rescore only what showed evidence in the first.
+"""
+
+from __future__ import annotations
+
+from mbst.discovery import acceptance, extension
+from mbst.discovery.state import DiscoveryState, Finding, Proposal
+from mbst.discovery.structure import CandidateScore, StageScorer, structure_test
+
+
+def structure_rounds(state: DiscoveryState) -> None:
+    """Round after round of the structure test until one stops (``DiscoveryState.rounds``)."""
+    bar = _progress_bar(state.settings.progress)
+    shortlist: set[str] | None = None
+    for rnd in range(state.settings.max_effects):
+        shortlist = _one_round(state, rnd, shortlist, bar)
+        if shortlist is None:
+            break
+    if bar is not None:
+        bar.close()
+
+
+def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
+               ) -> set[str] | None:
+    """One round; the candidates the next round rescores, or ``None`` to stop."""
+    scores = _screen(state, rnd, shortlist, bar)
+    rec = {"round": rnd + 1, "candidates": [score_record(s) for s in scores],
+           "accepted": None, "reason": ""}
+    state.rounds.append(rec)
+    if not scores:
+        rec["reason"] = ("no candidate left with evidence from the first round"
+                         if shortlist is not None else
+                         "no candidate can act in the scenarios tested")
+        return None
+    best = scores[0]
+    settings = state.settings
+    short = acceptance.margin_shortfall(best, settings.min_relative_gain, settings.min_aic_drop)
+    if short is not None:
+        rec["reason"] = short
+        return None
+    reset = state.compensating()
+    scorer = StageScorer(state.model.stage_tests(best.stage, state.ids), best.stage, state.p,
+                         state.scales, state.base.preid["upper"],
+                         settings.identify.decimate, reset=reset,
+                         free=state.cascade_free.get(best.stage))
+    cv = acceptance.cross_validate(scorer, best, state.p, settings.cv_nfev)
+    if cv["folds"] and cv["wins"] * 2 < cv["folds"]:
+        rec["reason"] = (f"{best.key} lost leave-one-test-out cross-validation "
+                         f"({cv['wins']}/{cv['folds']})")
+        return None
+    cost_before = state.cost
+    if not _extend(state, scorer, best, rec):
+        return None
+    rec["accepted"] = best.key
+    rec["cross_validation"] = cv
+    rec["identification_cost"] = {"before": cost_before, "after": state.cost}
+    ties = acceptance.tied_components(best, scores, {r.id: r for r in state.residuals},
+                                      state.model)
+    state.proposals.append(Proposal(best, scores[1] if len(scores) > 1 else None, cv,
+                                    acceptance.akaike_weight(best, scores), ties))
+    # an effect that did not help the base model does not start to once another is added
+    return {s.key for s in scores[1:]
+            if acceptance.shows_evidence(s, settings.min_relative_gain, settings.min_aic_drop)}
+
+
+def _screen(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
+            ) -> list[CandidateScore]:
+    """Every candidate (or the shortlist) refitted in its stage, best first."""
+    settings = state.settings
+
+    def tick(phase: str, sc: CandidateScore) -> None:
+        if bar is not None:
+            bar.set_description(f"round {rnd + 1} {phase} {sc.key}")
+            bar.update(1 if phase == "screen" else 0)
+
+    if bar is not None:
+        bar.reset(total=len(shortlist) if shortlist is not None else len(state.model.effects))
+    return structure_test(state.ids, state.p, state.scales, state.base.preid["upper"],
+                          exclude=set(state.accepted), decimate=settings.identify.decimate,
+                          refine=settings.refine, reset=state.compensating(), only=shortlist,
+                          progress=tick, stage_free=state.cascade_free,
+                          evidence_gain=acceptance.EVIDENCE_SHARE_OF_MARGIN
+                          * settings.min_relative_gain)
+
+
+def _extend(state: DiscoveryState, scorer: StageScorer, best: CandidateScore,
+            rec: dict) -> bool:
+    """Refit the whole cascade with ``best`` free; keep it if the identification cost falls."""
+    spec = state.model.effects[best.key]
+    trial_free = dict(state.extra_free)
+    trial_free[best.stage] = tuple(trial_free.get(best.stage, ())) + spec.free
+    start = extension.reset_extension_start(scorer, best, spec)
+    p_ext, cost_ext = extension.extend(state.campaign, state.settings.identify, state.ids,
+                                       state.scales, [best.params, start], trial_free,
+                                       state.cost)
+    if cost_ext >= state.cost:
+        rec["reason"] = (f"{best.key} won its stage but the refitted cascade did not lower "
+                         f"the identification cost ({cost_ext:.4g} ≥ {state.cost:.4g})")
+        return False
+    state.accepted.append(best.key)
+    state.extra_free = trial_free
+    state.p, state.cost = p_ext, cost_ext
+    return True
+
+
+def score_record(s: CandidateScore) -> dict:
+    """One row of ``structure_test.csv``."""
+    return {"key": s.key, "effect": s.effect, "component": s.component, "stage": s.stage,
+            "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
+            "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2),
+            "fell_back": s.fell_back}
+
+
+def _progress_bar(enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(unit="candidate", leave=False)
+
+
+def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | None,
+                     neural: dict | None) -> Finding:
+    """A structure-test winner named, sized (in the extended model) and argued for."""
+    best, cv = proposal.best, proposal.cv
+    model = state.model
+    spec = model.effects[best.key]
+    params = {h: float(state.p[model.param_index[n]]) for h, n in spec.headline.items()}
+    cv_frac = cv["wins"] / cv["folds"] if cv.get("folds") else 1.0
+    return Finding(
+        effect=spec.effect, component=spec.component, parameters=params,
+        confidence=proposal.weight * cv_frac,
+        evidence=evidence_text(best, proposal.runner, cv, state.regions, sparse, neural,
+                               proposal.ties),
+        stage=best.stage, relative_gain=best.relative_gain, aic_delta=best.aic_delta, cv=cv,
+        indistinguishable_from=[s.component for s, _ in proposal.ties],
+    )
+
+
+def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
+              regions: list[tuple[str, float]], sparse: dict | None,
+              neural: dict | None, ties: list[tuple[CandidateScore, float]] = ()) -> str:
+    parts = [
+        f"structure test: inserting {best.effect} in {best.component} and refitting the "
+        f"{best.stage} stage removed {100 * best.relative_gain:.1f} % of its residual cost "
+        f"(ΔAIC {best.aic_delta:.0f} with {best.n_eff:.0f} effective samples)",
+    ]
+    for s, corr in ties:
+        parts.append(
+            f"NOT DECIDED between {best.component} and {s.component}: they move as one body in "
+            f"the {best.stage} tests (speed correlation {corr:.5f}) and the same effect in "
+            f"{s.component} removed {100 * s.relative_gain:.1f} %; a test that moves one "
+            "without the other, or a sensor between them, would tell them apart")
+    if runner is not None:
+        parts.append(f"runner-up {runner.key} removed {100 * runner.relative_gain:.1f} % "
+                     f"(ΔAIC {runner.aic_delta:.0f})")
+    if cv.get("folds"):
+        parts.append(f"leave-one-test-out: better on {cv['wins']}/{cv['folds']} held-out tests, "
+                     f"held-out cost −{100 * cv['held_out_gain']:.1f} %")
+    else:
+        parts.append(cv.get("note", "no cross-validation"))
+    if regions:
+        parts.append("residual concentrated in " + ", ".join(
+            f"{k} ({v:.1f}× its share of time)" for k, v in regions[:2]))
+    for name, ev in (("sparse regression", sparse), ("neural residual", neural)):
+        if not ev or not ev.get("ranking"):
+            continue
+        keys = [k for k, _ in ev["ranking"]]
+        rank = keys.index(best.key) + 1 if best.key in keys else None
+        top = ev["ranking"][0]
+        txt = f"{name} ranks {top[0]} first ({100 * top[1]:.0f} % of residual variance)"
+        txt += f", this effect #{rank}" if rank and rank > 1 else (
+            "" if rank == 1 else ", this effect not among its terms")
+        parts.append(txt)
+    return "; ".join(parts)

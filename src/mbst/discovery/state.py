@@ -1,0 +1,164 @@
+"""What discovery carries from round to round: settings, the model as it stands, records.
+
+Every round (``discovery/rounds/``) takes a ``DiscoveryState`` and proposes findings
+into it; the pipeline loops over the family's rounds and never reaches inside them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mbst.core.model import ModelDefinition
+from mbst.discovery.data import TestResidual
+from mbst.discovery.restarts import compensating_parameters
+from mbst.discovery.structure import effective_samples
+from mbst.identify.cascade import IdentifyResult, IdentifySettings
+from mbst.identify.fitting import PreparedTest, channel_scales, twins_of_tests
+from mbst.io.campaign import Campaign
+
+if TYPE_CHECKING:
+    from mbst.discovery.structure import CandidateScore
+
+
+@dataclass
+class DiscoverSettings:
+    """Settings of discovery (config: ``discover.*``).
+
+    ``min_relative_gain`` and ``min_aic_drop`` are the margin that noise
+    alone does not give: on clean bench campaigns the best candidate removes
+    at most ~4 % of its stage's cost (``benchmarks/discover.py`` prints it).
+    ``sparse``, ``neural``, ``stick_slip``, ``equation_error`` and ``resolution``
+    switch off a round or an evidence method the family has; they never switch on
+    one it does not declare (``ModelDefinition.discovery_rounds``/``evidence_methods``).
+    """
+
+    identify: IdentifySettings = field(default_factory=IdentifySettings)
+    max_effects: int = 2
+    min_relative_gain: float = 0.10
+    min_aic_drop: float = 100.0
+    refine: int = 5
+    cv_nfev: int = 8
+    sparse: bool = True
+    neural: bool = True
+    stick_slip: bool = True
+    equation_error: bool = True
+    neural_iterations: int | None = None
+    progress: bool = False
+    resolution: bool = True
+
+    def wants(self, model: ModelDefinition, name: str) -> bool:
+        """Whether round or evidence method ``name`` runs: the family has it, the user kept it."""
+        declared = name in model.discovery_rounds or name in model.evidence_methods
+        return declared and getattr(self, name, True)
+
+
+@dataclass
+class Finding:
+    """One named effect (discovery.json ``findings`` entry)."""
+
+    effect: str
+    component: str
+    parameters: dict[str, float]
+    confidence: float
+    evidence: str
+    stage: str
+    relative_gain: float
+    aic_delta: float | None  # None where the criterion is not the output error (stick-slip)
+    cv: dict
+    # components the same effect could sit in as well: they move as one body with
+    # ``component`` in the stage's tests and explain the data alike
+    indistinguishable_from: list[str] = field(default_factory=list)
+
+    def record(self) -> dict:
+        return {"effect": self.effect, "component": self.component,
+                "parameters": self.parameters, "confidence": round(self.confidence, 4),
+                "evidence": self.evidence, "stage": self.stage,
+                "relative_gain": self.relative_gain, "aic_delta": self.aic_delta,
+                "cross_validation": self.cv,
+                "indistinguishable_from": list(self.indistinguishable_from)}
+
+
+@dataclass
+class Proposal:
+    """A structure-test winner, named once the sparse and neural evidence are in."""
+
+    best: CandidateScore
+    runner: CandidateScore | None
+    cv: dict
+    weight: float  # Akaike weight among the stage's candidates
+    ties: list[tuple[CandidateScore, float]]
+
+
+def total_cost(tests: list[PreparedTest], p: np.ndarray, scales: dict[str, float],
+               decimate: int = 2) -> tuple[float, list[np.ndarray]]:
+    """Weighted data cost of ``p`` on ``tests`` (as the cascade weighs it) and the residuals."""
+    cost, res = 0.0, []
+    for pt, (tw,) in zip(tests, twins_of_tests(tests, [p[None]] * len(tests)), strict=True):
+        n = len(pt.time_s[::decimate])
+        for ch in pt.measured:
+            r = (tw[ch] - pt.measured[ch])[::decimate]
+            res.append(r)
+            w = 1.0 / (scales[ch] * math.sqrt(n))
+            cost += 0.5 * float(np.sum((r * w) ** 2))
+    return cost, res
+
+
+@dataclass
+class DiscoveryState:
+    """The model as discovery has extended it so far, and what each round recorded."""
+
+    campaign: Campaign
+    settings: DiscoverSettings
+    base: IdentifyResult
+    residuals: list[TestResidual]
+    regions: list
+    ids: list[PreparedTest]
+    scales: dict[str, float]
+    p: np.ndarray
+    cost: float
+    timings: dict[str, float]
+    base_cost: float  # identification cost of the base model
+    base_n_eff: float  # effective samples of its residual
+    accepted: list[str] = field(default_factory=list)
+    extra_free: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    rounds: list[dict] = field(default_factory=list)
+    proposals: list[Proposal] = field(default_factory=list)
+    findings: list[Finding] = field(default_factory=list)
+    resolution: list = field(default_factory=list)
+
+    @classmethod
+    def start(cls, campaign: Campaign, settings: DiscoverSettings, base: IdentifyResult,
+              residuals: list[TestResidual], regions: list, timings: dict[str, float]
+              ) -> DiscoveryState:
+        ids = [base.prepared[s.id] for s in campaign.identification_tests()]
+        scales = channel_scales(ids)
+        p = base.params.copy()
+        cost, res = total_cost(ids, p, scales, settings.identify.decimate)
+        return cls(campaign, settings, base, residuals, regions, ids, scales, p, cost, timings,
+                   cost, effective_samples(res))
+
+    @property
+    def model(self) -> ModelDefinition:
+        return self.base.model
+
+    @property
+    def cascade_free(self) -> dict[str, list[str]]:
+        """What the base cascade freed in each stage (the structure test refits the same)."""
+        return {st.scenario: list(st.free) for st in self.base.stages}
+
+    def room_for_more(self) -> bool:
+        return len(self.accepted) < self.settings.max_effects
+
+    def compensating(self) -> dict[str, float]:
+        """Stage parameters that a fit without an effect may have inflated (never the
+        ones measured directly), with the typical values a restart resets them to."""
+        held = set(self.base.preid.get("held", {}))
+        names = [n for _, stage in self.model.cascade for n in stage if n not in held]
+        return compensating_parameters(self.p, names, self.model)
+
+    def refit_cost(self) -> None:
+        self.cost, _ = total_cost(self.ids, self.p, self.scales, self.settings.identify.decimate)
