@@ -150,7 +150,7 @@ def test_hps_curve_is_identified(tmp_path):
     only = {"assist.normal.c1", "assist.city.c1"}
     for n in only:  # start far from the truth
         base[model.param_index[n]] = 2.0
-    p, *_ = run_cascade(camp, IdentifySettings(multistart=1), base=base, only=only)
+    p = run_cascade(camp, IdentifySettings(multistart=1), base=base, only=only).params
     for n in only:
         assert p[model.param_index[n]] == pytest.approx(truth[n], rel=0.05)
 

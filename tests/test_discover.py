@@ -15,11 +15,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+import mbst.discovery.extension as extension_mod
 import mbst.discovery.pipeline as pipeline_mod
 from mbst.cli import main
 from mbst.discovery.pipeline import DiscoverSettings, discover
 from mbst.discovery.rounds.resolution import scaled_size
-from mbst.discovery.rounds.structure import effective_samples, stage_for, start_grid
+from mbst.discovery.structure import effective_samples, stage_for, start_grid
 from mbst.io.campaign import read_campaign
 from mbst.report.discovery import discovery_record, write_discover_outputs
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
@@ -84,7 +85,7 @@ def backlash(tmp_path_factory):
     import mbst.identify.fitting as fitting_mod
 
     seen: list[str] = []
-    real_twins, real_compare = fitting_mod.twins_of_tests, pipeline_mod._compare
+    real_twins, real_compare = fitting_mod.twins_of_tests, pipeline_mod.compare
 
     def spy_twins(pts, pss):
         seen.extend(pt.id for pt in pts)
@@ -100,7 +101,7 @@ def backlash(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         for mod in holders:
             mp.setattr(mod, "twins_of_tests", spy_twins)
-        mp.setattr(pipeline_mod, "_compare", spy_compare)
+        mp.setattr(pipeline_mod, "compare", spy_compare)
         camp, truth, result = _run(tmp_path_factory, ["backlash:worm_gear"])
     result.simulated_ids = seen
     return camp, truth, result
@@ -371,8 +372,8 @@ def test_confidence_weighs_candidates_with_one_sample_count():
     """
     from types import SimpleNamespace
 
-    from mbst.discovery.pipeline import akaike_weight
-    from mbst.discovery.rounds.structure import aic_delta
+    from mbst.discovery.acceptance import akaike_weight
+    from mbst.discovery.structure import aic_delta
 
     def cand(gain, n_eff):
         return SimpleNamespace(stage="free_tie_rods", cost=1.0 - gain, cost_base=1.0,
@@ -393,8 +394,8 @@ def test_a_tie_is_declared_only_between_components_that_move_as_one_body():
     """
     from types import SimpleNamespace
 
+    from mbst.discovery.acceptance import tied_components
     from mbst.discovery.data import TestResidual
-    from mbst.discovery.pipeline import tied_components
 
     t = np.linspace(0.0, 4.0, 2001)
     pinion = np.cos(2 * np.pi * 0.5 * t)
@@ -438,7 +439,8 @@ def test_base_refit_also_starts_from_the_reset_parameters(backlash):
     9 % above on one machine and escaped to 0.6 % on another: the test needs a
     start that stays stuck.)
     """
-    from mbst.discovery.rounds.structure import StageScorer, compensating_parameters
+    from mbst.discovery.restarts import compensating_parameters
+    from mbst.discovery.structure import StageScorer
     from mbst.identify.fitting import channel_scales
 
     camp, _, result = backlash
@@ -476,8 +478,8 @@ def test_extension_falls_back_to_the_cascade_restarts(monkeypatch, quick_cost, e
         cost = quick_cost if settings.multistart == 1 else 0.5
         return np.full(2, float(settings.multistart)), cost
 
-    monkeypatch.setattr(pipeline_mod, "_extended_cascade", cascade)
-    p, cost = pipeline_mod._extend(None, IdentifySettings(multistart=3), [], {}, [None], {}, 1.0)
+    monkeypatch.setattr(extension_mod, "extended_cascade", cascade)
+    p, cost = extension_mod.extend(None, IdentifySettings(multistart=3), [], {}, [None], {}, 1.0)
     assert runs == expected_runs
     assert cost == (0.9 if expected_runs == [1] else 0.5)
     assert p[0] == expected_runs[-1]
@@ -488,7 +490,7 @@ def test_tires_candidates_refit_the_offsets_the_cascade_frees(tmp_path):
     fit puts into the tie-rod force offsets. Refitted with only the tire parameters the
     asymmetry cannot pay; with the cascade's free set of that stage (the offsets are first
     measured there) it removes nearly all of the stage cost."""
-    from mbst.discovery.rounds.structure import StageScorer
+    from mbst.discovery.structure import StageScorer
     from mbst.identify.fitting import channel_scales, prepare_test
 
     recipe = BenchRecipe(effects=["asymmetric_friction:tires"], seed=1)
@@ -516,18 +518,18 @@ def test_extension_keeps_its_start_when_the_cascade_ends_worse(monkeypatch):
     """A start is already a complete extended model; a cascade that ends in a worse basin
     from it must not cost the finding (the powered backlash case: start 0.00163, cascade
     0.00762 against the base's 0.00413)."""
-    from mbst.identify.cascade import IdentifySettings
+    from mbst.identify.cascade import Cascade, IdentifySettings
 
     def cascade(campaign, settings, base, extra_free):
-        return base + 1.0, [], {}, [], {}  # the cascade moves every parameter
+        return Cascade(base + 1.0, [], {}, [], {})  # the cascade moves every parameter
 
     def cost(ids, p, scales, decimate=2):
         return float(p[0]), []  # the moved vector costs more than its start
 
-    monkeypatch.setattr(pipeline_mod, "run_cascade", cascade)
-    monkeypatch.setattr(pipeline_mod, "total_cost", cost)
+    monkeypatch.setattr(extension_mod, "run_cascade", cascade)
+    monkeypatch.setattr(extension_mod, "total_cost", cost)
     start = np.array([0.3, 7.0])
-    p, c = pipeline_mod._extended_cascade(None, IdentifySettings(), [], {}, [start, None], {})
+    p, c = extension_mod.extended_cascade(None, IdentifySettings(), [], {}, [start, None], {})
     np.testing.assert_array_equal(p, start)
     assert c == 0.3
 
@@ -540,8 +542,8 @@ def test_a_candidate_with_evidence_refines_from_the_level_it_absorbed(tmp_path, 
     does not (their refits stay as cheap as before)."""
     from dataclasses import replace
 
-    import mbst.discovery.rounds.structure as structure_mod
-    from mbst.discovery.rounds.structure import StageScorer
+    import mbst.discovery.structure as structure_mod
+    from mbst.discovery.structure import StageScorer
     from mbst.identify.fitting import channel_scales, prepare_test
 
     recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())

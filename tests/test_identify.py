@@ -33,17 +33,15 @@ WELL_DETERMINED = (
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory):
-    out = tmp_path_factory.mktemp("clean")
-    camp = read_campaign(run_bench(out, BenchRecipe(effects=[], seed=1)))
-    truth = json.loads((out / "truth.json").read_text())["params"]
+def clean(demo_clean_bench):
+    camp = read_campaign(demo_clean_bench / "campaign")
+    truth = json.loads((demo_clean_bench / "truth.json").read_text())["params"]
     return camp, vector_from(truth), identify(camp, IdentifySettings())
 
 
 @pytest.fixture(scope="module")
-def backlash(tmp_path_factory):
-    out = tmp_path_factory.mktemp("backlash")
-    camp = read_campaign(run_bench(out, BenchRecipe(effects=["backlash:worm_gear"], seed=1)))
+def backlash(demo_backlash_bench):
+    camp = read_campaign(demo_backlash_bench / "campaign")
     return camp, identify(camp, IdentifySettings())
 
 
@@ -252,6 +250,6 @@ def test_angle_noise_does_not_bias_the_column_friction(tmp_path):
     truth = recipe.true_params()
     only = {"torsion_bar.stiffness_nm_per_rad", "steering_column.coulomb_nm",
             "steering_column.viscous_nms_per_rad"}
-    p, *_ = run_cascade(camp, IdentifySettings(), base=truth, only=only)
+    p = run_cascade(camp, IdentifySettings(), base=truth, only=only).params
     i = PARAM_INDEX["steering_column.coulomb_nm"]
     assert p[i] == pytest.approx(truth[i], rel=0.05)

@@ -13,7 +13,6 @@ from mbst.discovery.data import residual_data
 from mbst.discovery.evidence.neural import NeuralResidual, explain, plot_learned
 from mbst.identify.cascade import IdentifySettings, identify
 from mbst.io.campaign import read_campaign
-from mbst.systems.eps.bench import BenchRecipe, run_bench
 
 # Measured on the seed-1 backlash campaign (worm-gear gap 0.035 rad): the free_tie_rods
 # control torque goes from 86.4 % to 92.3–95.6 % FIT over training seeds 0, 1, 3 (default
@@ -21,21 +20,20 @@ from mbst.systems.eps.bench import BenchRecipe, run_bench
 MIN_GAIN_POINTS = 3.0
 
 
-def _campaign(tmp_path_factory, name: str, effects: list[str]):
-    out = tmp_path_factory.mktemp(name)
-    camp = read_campaign(run_bench(out, BenchRecipe(effects=effects, seed=1)))
+def _campaign(bench_dir):
+    camp = read_campaign(bench_dir / "campaign")
     res = identify(camp, IdentifySettings())
     return [residual_data(pt, res.params, res.twins.get(pt.id)) for pt in res.prepared.values()]
 
 
 @pytest.fixture(scope="module")
-def backlash(tmp_path_factory):
-    return _campaign(tmp_path_factory, "backlash", ["backlash:worm_gear"])
+def backlash(demo_backlash_bench):
+    return _campaign(demo_backlash_bench)
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory):
-    return _campaign(tmp_path_factory, "clean", [])
+def clean(demo_clean_bench):
+    return _campaign(demo_clean_bench)
 
 
 @pytest.fixture(scope="module")

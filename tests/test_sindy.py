@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,27 +19,25 @@ from mbst.discovery.evidence.sindy import (
 from mbst.discovery.evidence.terms import dahl, in_gap, play
 from mbst.identify.cascade import IdentifySettings, identify
 from mbst.io.campaign import read_campaign
-from mbst.systems.eps.bench import BenchRecipe, run_bench
 
 TORQUE = "steering_torque_nm"
 
 
-def _campaign(tmp_path_factory, name: str, effects: list[str]) -> list[TestResidual]:
-    camp = read_campaign(run_bench(tmp_path_factory.mktemp(name), BenchRecipe(effects=effects,
-                                                                                  seed=1)))
+def _campaign(bench_dir: Path) -> list[TestResidual]:
+    camp = read_campaign(bench_dir / "campaign")
     # one start is enough on the demo campaign and halves the time (same optimum here)
     res = identify(camp, IdentifySettings(multistart=1))
     return [residual_data(pt, res.params, res.twins.get(pt.id)) for pt in res.prepared.values()]
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory) -> list[TestResidual]:
-    return _campaign(tmp_path_factory, "clean", [])
+def clean(demo_clean_bench) -> list[TestResidual]:
+    return _campaign(demo_clean_bench)
 
 
 @pytest.fixture(scope="module")
-def backlash(tmp_path_factory) -> list[TestResidual]:
-    return _campaign(tmp_path_factory, "backlash", ["backlash:worm_gear"])
+def backlash(demo_backlash_bench) -> list[TestResidual]:
+    return _campaign(demo_backlash_bench)
 
 
 @pytest.fixture(scope="module")

@@ -130,7 +130,7 @@ def _measured_only(twin: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {ch: v for ch, v in twin.items() if not ch.startswith("internal.")}
 
 
-def _twins_batch(pt: PreparedTest, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
+def twins_batch(pt: PreparedTest, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Simulate many parameter vectors on one test in parallel (the family's batch simulator)."""
     return [_measured_only(tw) for tw in twins_of_tests([pt], [ps])[0]]
 

@@ -35,7 +35,7 @@ from scipy.signal import butter, sosfiltfilt
 from mbst.core.filtering import exponential_filter
 from mbst.core.model import EffectSpec, ModelDefinition
 from mbst.discovery.state import DiscoveryState, Finding
-from mbst.identify.fitting import PreparedTest, _twins_batch
+from mbst.identify.fitting import PreparedTest, twins_batch
 
 EFFECT = "stribeck_friction"
 HIGHPASS_HZ = 3.0  # above the drive (≤ 1 Hz and its first harmonics), below the sawtooth
@@ -140,7 +140,7 @@ class StageEnvelope:
         """Envelope misfit of each parameter vector on each test, shape (len(ps), tests)."""
         out = np.zeros((len(ps), len(self.tests)))
         for j, (pt, pw) in enumerate(zip(self.tests, self.power, strict=True)):
-            for i, tw in enumerate(_twins_batch(pt, ps)):
+            for i, tw in enumerate(twins_batch(pt, ps)):
                 ok = all(np.all(np.isfinite(tw[ch])) for ch in pt.measured)
                 out[i, j] = envelope_misfit(pt, tw, pw) if ok else np.inf
         return out
