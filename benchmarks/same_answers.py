@@ -38,7 +38,7 @@ CAMPAIGNS = {
 }
 DISCOVER_EXTRA = {"emps": ["--min-aic-drop", "30", "--max-effects", "3"]}
 # keys whose values are run-dependent by nature
-VOLATILE = {"timings", "provenance", "code_version", "campaign_dir", "wall_s", "created",
+VOLATILE = {"timings", "timings_s", "train_seconds", "provenance", "code_version", "campaign_dir", "wall_s", "created",
             "neural_s", "neural_wait_s", "seconds", "time_s", "elapsed_s"}
 FILES = ("identify/params.json", "identify/correlation.csv", "discover/discovery.json",
          "discover/comparison.csv", "discover/structure_test.csv",
