@@ -103,7 +103,8 @@ def _cmd_discover(args: argparse.Namespace) -> int:
     if args.min_aic_drop < 0:
         raise UsageError(f"--min-aic-drop must be ≥ 0, got {args.min_aic_drop}")
     settings = DiscoverSettings(
-        identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart),
+        identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
+                                  joint_refinement=args.joint),
         max_effects=args.max_effects, min_relative_gain=args.min_gain,
         min_aic_drop=args.min_aic_drop,
         sparse=not args.no_sparse, neural=not args.no_neural,
@@ -223,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
     p.add_argument("--seed", type=int, default=0, help="seed of multi-starts and training")
+    p.add_argument("--joint", action="store_true",
+                   help="the base model's cascade ends with a joint refit, as `identify --joint`")
     p.add_argument("--multistart", type=int, default=2, help="starts per cascade stage")
     p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
     p.add_argument("--min-gain", type=float, default=0.10,

@@ -12,6 +12,10 @@ import math
 import numpy as np
 from scipy.signal import lfilter, savgol_coeffs, savgol_filter
 
+# Width of the window that smooths the measured driving input (steering angle) into
+# the model's input and its rate (eps-model.md, "Preprocessing").
+INPUT_WINDOW_S = 0.1
+
 
 def filter_alpha(dt_s: float, tau_s: float) -> float:
     """α = 1 − exp(−Δt/τ); τ = 0 means no filtering (α = 1)."""

@@ -36,6 +36,8 @@ class TestResidual:
     measured: dict[str, np.ndarray]
     simulated: dict[str, np.ndarray]
     states: dict[str, np.ndarray] = field(default_factory=dict)
+    # the exponential filter's τ of this test's channels and twin (0: unfiltered)
+    tau_s: float = 0.0
 
     __test__ = False  # not a pytest class
 
@@ -57,5 +59,5 @@ def residual_data(pt: PreparedTest, p: np.ndarray,
     return TestResidual(
         id=pt.id, scenario=pt.scenario, role=pt.spec.role, motor=pt.spec.motor, dt_s=pt.dt_s,
         time_s=pt.time_s, angle_rad=pt.angle_in_rad, omega_rad_per_s=pt.omega_rad_per_s,
-        measured=dict(pt.measured), simulated=sim, states=states,
+        measured=dict(pt.measured), simulated=sim, states=states, tau_s=pt.tau_s,
     )

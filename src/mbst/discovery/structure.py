@@ -25,11 +25,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbst.core.model import EffectSpec, ModelDefinition
-from mbst.identify.fitting import FitProblem, PreparedTest, solve, twins_of_tests
+from mbst.identify.fitting import FitProblem, FitResult, PreparedTest, solve, twins_of_tests
 
 # Starting grid of each headline parameter, as multiples of the catalogue's realistic size
 # (or absolute values where a multiple makes no sense).
 _GRID_FACTORS = (0.3, 1.0, 3.0)
+# A candidate nests the base model: refitted from the neutral start (the base refit with
+# the effect off) it cannot end above the base cost but by the start's nudge off a bound
+# (1e-6 of the range) and rounding; beyond this share it counts as not fully tested.
+NESTED_TOLERANCE = 1e-6
+# A refined candidate continues in steps of the refine budget while a step still lowers
+# its cost by this share, at most this many steps (least_squares' own stop ends it earlier).
+CONVERGED_GAIN = 1e-3
+MAX_REFINE_STEPS = 4
 
 
 @dataclass
@@ -57,6 +65,11 @@ class CandidateScore:
     per_test_cost_base: dict[str, float] = field(default_factory=dict)
     # the refit ended above the base cost and the effect was left off (neutral)
     fell_back: bool = False
+    cost_refit: float = 0.0  # what the refit itself reached (``cost`` is the base's if worse)
+    # the optimiser's status for the kept start (scipy least_squares: 0 = budget spent,
+    # 1-4 = converged) and how many of its evaluations diverged (large finite cost)
+    status: int = 0
+    n_diverged: int = 0
 
     @property
     def relative_gain(self) -> float:
@@ -297,19 +310,23 @@ class StageScorer:
                 # screening to 39 % of the stage cost beside a Coulomb level of 3166 N
                 # (true 2600 N), from this start to 85 %.
                 starts.append(self.handbook_start(p_base, spec, absorbed))
+        # the neutral start: the base refit with the effect off, which the candidate nests,
+        # so that its refit cannot end worse than the base (a flat cost at neutral, a
+        # backlash of zero width, is left by the grid and handbook starts)
+        starts.append(p_base)
         t_grid = time.perf_counter() - t0
-        free = list(spec.free) + self.stage_free
-        prob = self.problem(free, p_base)
-        fr = solve(prob, starts, max_nfev=max_nfev or self.max_nfev)
+        fr = self._refit(spec, p_base, starts, max_nfev or self.max_nfev,
+                         converge=start is not None)
         costs, blocks = self._evaluate(fr.p[None], residuals=True)
         per_test = costs[0]
         per_test_base = self._base_per_test
-        cost = float(per_test.sum())
-        p_fit, fell_back = fr.p, not cost <= cost_base
-        if fell_back:
-            # The candidate nests the base model (effect off at its neutral value), so it
-            # can always do as well as the base; a refit that ended worse is a local
-            # minimum of the short budget, and its score is the base's (gain 0).
+        cost = refit_cost = float(per_test.sum())
+        p_fit = fr.p
+        fell_back = not cost <= cost_base * (1.0 + NESTED_TOLERANCE)
+        if cost > cost_base:
+            # The candidate nests the base model: ending above it (the neutral start's
+            # nudge off a bound, rounding; beyond NESTED_TOLERANCE a refit that failed),
+            # its score is the base's (gain 0).
             p_fit, per_test, cost = p_base, per_test_base, cost_base
         if cost < cost_base:
             # F-test convention: the noise and its colour are read from the fuller model's
@@ -317,7 +334,7 @@ class StageScorer:
             n_eff = effective_samples(blocks)
         return CandidateScore(
             key=spec.key, effect=spec.effect, component=spec.component, stage=self.stage,
-            tests=[pt.id for pt in self.tests], free=free, k_effect=len(spec.free),
+            tests=[pt.id for pt in self.tests], free=list(spec.free) + self.stage_free, k_effect=len(spec.free),
             cost_base=cost_base, cost=cost, n_eff=n_eff,
             aic_delta=aic_delta(cost, cost_base, n_eff, len(spec.free)), params=p_fit,
             headline={h: float(p_fit[self.model.param_index[n]])
@@ -327,8 +344,25 @@ class StageScorer:
             per_test_cost={pt.id: float(c) for pt, c in zip(self.tests, per_test, strict=True)},
             per_test_cost_base={pt.id: float(c)
                                 for pt, c in zip(self.tests, per_test_base, strict=True)},
-            fell_back=fell_back,
+            fell_back=fell_back, status=fr.status, n_diverged=fr.n_diverged,
+            cost_refit=refit_cost,
         )
+
+    def _refit(self, spec: EffectSpec, p_base: np.ndarray, starts: list[np.ndarray],
+               max_nfev: int, converge: bool) -> FitResult:
+        """The effect and the stage's parameters refitted from ``starts``; with
+        ``converge``, continued from its end in steps of ``max_nfev`` until converged."""
+        prob = self.problem(list(spec.free) + self.stage_free, p_base)
+        fr = solve(prob, starts, max_nfev=max_nfev, interior=0.0)
+        for _ in range(MAX_REFINE_STEPS - 1 if converge else 0):
+            if fr.status != 0:  # least_squares stopped on its own tolerances
+                break
+            nxt = solve(prob, [fr.p], max_nfev=max_nfev, interior=0.0)
+            gained = nxt.cost < fr.cost * (1.0 - CONVERGED_GAIN)
+            fr = nxt if nxt.cost < fr.cost else fr
+            if not gained:
+                break
+        return fr
 
 
 def candidates(model: ModelDefinition, exclude: set[str] = frozenset()) -> list[EffectSpec]:

@@ -267,6 +267,10 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
         at_bound=fr.at_bound, identifiable=fr.identifiable,
     )
     notes = []
+    if fr.n_diverged:
+        notes.append(f"stage {scenario}: {fr.n_diverged} of {fr.n_eval} evaluations simulated "
+                     "a diverging trajectory; each counted as a large finite cost the "
+                     "optimiser stepped back from")
     for n in free:
         spec = model.spec(n)
         if fr.at_bound[n]:

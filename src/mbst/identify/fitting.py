@@ -16,11 +16,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from mbst.core.filtering import exponential_filter, filtered_noise_gain, white_noise_std
+from mbst.core.filtering import (
+    INPUT_WINDOW_S,
+    exponential_filter,
+    filtered_noise_gain,
+    white_noise_std,
+)
 from mbst.core.model import ModelDefinition
 from mbst.io.campaign import Campaign, CampaignError, TestSpec
 
-INPUT_WINDOW_S = 0.1
 # campaign.yaml key that marks a campaign written by `mbst preprocess` (already filtered)
 PREPROCESSED_KEY = "preprocessed"
 
@@ -146,6 +150,12 @@ def channel_scales(tests: list[PreparedTest]) -> dict[str, float]:
 
 # the prior's weight on noise-free data, where the noise floor is zero
 PRIOR_WEIGHT_FLOOR = 1e-9
+# A weighted residual beyond this (or not finite) comes from a simulation that diverged:
+# it is set to this size, so the optimiser sees a large finite cost and steps back. Fitted
+# residuals are O(1) (channels are scaled by their spread); squared and summed over 1e5
+# samples the bound stays far from overflow, where least_squares would stop with
+# "array must not contain infs or NaNs" and the answer would be lost.
+DIVERGED_RESIDUAL = 1e6
 
 
 class FitProblem:
@@ -186,6 +196,8 @@ class FitProblem:
         self.lb = self._to_u(lo)
         self.ub = self._to_u(hi)
         self.n_eval = 0
+        # residual evaluations whose simulation diverged (mapped to DIVERGED_RESIDUAL)
+        self.n_diverged = 0
         # the last residual evaluation (u, data residual of each test): least_squares asks
         # for the Jacobian where it has just evaluated the residuals
         self._last: tuple[np.ndarray, list[np.ndarray]] | None = None
@@ -263,7 +275,17 @@ class FitProblem:
         out = [self._res_of_twin(pt, tw[0]) for pt, tw in zip(self.tests, twins, strict=True)]
         self._last = (np.array(u, float, copy=True), out)
         r = np.concatenate([*out, self.prior_w * (u - self.u_prior)])
-        return np.where(np.isfinite(r), r, 1e6)
+        return self._bounded(r)
+
+    def _bounded(self, r: np.ndarray) -> np.ndarray:
+        """``r`` with a diverged simulation's residuals at ``±DIVERGED_RESIDUAL``."""
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.abs(r) <= DIVERGED_RESIDUAL)
+        if not bad.any():
+            return r
+        self.n_diverged += 1
+        big = np.where(np.isfinite(r), np.sign(r), 1.0) * DIVERGED_RESIDUAL
+        return np.where(bad, big, r)
 
     def _reusable(self, pt: PreparedTest, ps: np.ndarray) -> bool:
         """Whether the batch ``ps[1:]`` with row 0 simulated alone gives the numbers of the
@@ -298,8 +320,9 @@ class FitProblem:
             else:
                 twins = sims[i]
                 r0 = self._res_of_twin(pt, twins[0])
+            r0 = self._bounded(r0)
             cols.append(np.stack(
-                [(self._res_of_twin(pt, twins[j + 1]) - r0) / (sgn[j] * h[j])
+                [(self._bounded(self._res_of_twin(pt, twins[j + 1])) - r0) / (sgn[j] * h[j])
                  for j in range(len(u))], axis=1))
         self.n_eval += len(us)
         cols.append(np.diag(self.prior_w))
@@ -327,6 +350,10 @@ class FitResult:
     n_residuals: int
     n_eval: int
     starts: list[float]
+    # evaluations whose simulation diverged (a large finite cost the optimiser stepped back
+    # from); status of the kept start (scipy's least_squares: 0 = budget spent, > 0 converged)
+    n_diverged: int = 0
+    status: int = 0
 
 
 STALE_STARTS = 3
@@ -339,12 +366,16 @@ def solve(
     more_starts: Callable[[], np.ndarray] | None = None,
     max_more: int = 0,
     good_cost: float = 0.0,
+    interior: float = 1e-6,
 ) -> FitResult:
     """Run least_squares from each start (parameter vectors); keep the best.
 
     With ``more_starts``, up to ``max_more`` further starts are drawn from it
     while the best cost is still above ``good_cost``, until ``STALE_STARTS`` in a
     row find nothing clearly better (a cost the model cannot go below).
+    A start on a bound is moved inside by ``interior`` of the range; with 0, only
+    by least_squares' own 1e-10 (a nested model's neutral start, whose effect sits on
+    its bound, must cost what the base costs).
     """
     best = None
     costs = []
@@ -353,7 +384,7 @@ def solve(
         u0 = problem.u_of(p0)
         # keep strictly inside the bounds (trf needs interior starts)
         span = problem.ub - problem.lb
-        u0 = np.clip(u0, problem.lb + 1e-6 * span, problem.ub - 1e-6 * span)
+        u0 = np.clip(u0, problem.lb + interior * span, problem.ub - interior * span)
         res = least_squares(problem.residuals, u0, jac=problem.jacobian,
                             bounds=(problem.lb, problem.ub), method="trf", x_scale="jac",
                             max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
@@ -457,4 +488,6 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
         n_residuals=m,
         n_eval=problem.n_eval,
         starts=costs,
+        n_diverged=problem.n_diverged,
+        status=int(res.status),
     )

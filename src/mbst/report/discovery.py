@@ -103,6 +103,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
     for r in result.rounds:
         if r.get("reason"):
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
+    lines += untested_lines(result.rounds)
     if result.resolution:
         lines += resolution_lines(result)
     lines += ["", "## Control tests (held out): FIT %", ""]
@@ -206,3 +207,19 @@ def run_discover(campaign: Campaign, out_dir: str | Path,
     with atomic_output_dir(out_dir) as tmp:
         write_discover_outputs(result, tmp)
     return result
+
+
+def untested_lines(rounds: list[dict]) -> list[str]:
+    """How many structure-test candidates were not fully tested, and which."""
+    cands = [c for r in rounds for c in r.get("candidates", []) if "fell_back" in c]
+    if not cands:
+        return []
+    stuck = [f"{c['key']} (round {r['round']})" for r in rounds
+             for c in r.get("candidates", []) if c.get("fell_back")]
+    if not stuck:
+        return ["", f"Every candidate refit ended at or below the base it nests "
+                    f"({len(cands)} refits)."]
+    return ["", f"**Not fully tested:** {len(stuck)} of {len(cands)} candidate refits ended "
+                f"above the base model they nest (scored as the base, gain 0): "
+                + ", ".join(stuck) + "."]
+

@@ -56,8 +56,6 @@ from mbst.discovery.data import TestResidual
 from mbst.discovery.evidence.terms import dahl, in_gap
 from mbst.systems.eps.params import PARAM_INDEX, PARAM_SPECS, friction_param
 
-# Measured channels are filtered with this time constant (campaign default, eps-model.md).
-FILTER_TAU_S = 0.005
 # Latent dynamics time scale: a 14 Hz ringing has rate 88 1/s, i.e. ~1.8 in these units.
 TIME_SCALE_S = 0.02
 # The neural ODE runs at about this rate; the filtered channels carry nothing above ~30 Hz.
@@ -566,8 +564,8 @@ def _library(test: TestResidual) -> list[tuple[str, str, np.ndarray]]:
     if np.any(sig.get("tie_rod_force_total_n", zero)):
         terms.append(("tanh(v_tie_rods/v_eps)", "coulomb_friction:tie_rods",
                       np.tanh(dv / _typical(friction_param("rack", "regularisation_velocity")))))
-    # filtered like the channels the correction was trained on
-    return [(nm, key, exponential_filter(x, dt, FILTER_TAU_S)) for nm, key, x in terms]
+    # filtered like the channels the correction was trained on (the campaign's τ)
+    return [(nm, key, exponential_filter(x, dt, test.tau_s)) for nm, key, x in terms]
 
 
 def _correlation_ratio(x: np.ndarray, y: np.ndarray, bins: int = 20) -> float:

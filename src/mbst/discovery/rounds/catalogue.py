@@ -8,9 +8,13 @@ and still lower the identification cost once the whole cascade is refitted with 
 
 from __future__ import annotations
 
+import logging
+
 from mbst.discovery import acceptance, extension
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
 from mbst.discovery.structure import CandidateScore, StageScorer, structure_test
+
+log = logging.getLogger(__name__)
 
 
 def structure_rounds(state: DiscoveryState) -> None:
@@ -29,6 +33,12 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
                ) -> set[str] | None:
     """One round; the candidates the next round rescores, or ``None`` to stop."""
     scores = _screen(state, rnd, shortlist, bar)
+    for s in scores:
+        if s.fell_back:
+            # the candidate was not fully tested: its refit ended above the base it nests
+            log.warning("round %d: %s refit ended %.3g %% above the base (status %d)%s",
+                        rnd + 1, s.key, 100 * (s.cost_refit / s.cost_base - 1), s.status,
+                        "; its screening showed a gain" if s.grid_gain > 0 else "")
     rec = {"round": rnd + 1, "candidates": [score_record(s) for s in scores],
            "accepted": None, "reason": ""}
     state.rounds.append(rec)
@@ -113,7 +123,8 @@ def score_record(s: CandidateScore) -> dict:
     return {"key": s.key, "effect": s.effect, "component": s.component, "stage": s.stage,
             "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
             "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2),
-            "fell_back": s.fell_back}
+            "fell_back": s.fell_back, "optimizer_status": s.status,
+            "diverged_evaluations": s.n_diverged}
 
 
 def _progress_bar(enabled: bool):

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from mbst.core.filtering import cubic_window, white_noise_std
+from mbst.core.filtering import INPUT_WINDOW_S, cubic_window, white_noise_std
 from mbst.core.model import ModelDefinition
 from mbst.core.threads import run_longest_first
 from mbst.systems.eps import assist as eps_assist
@@ -72,7 +72,6 @@ OFFSET_CHANNEL = {
 }
 
 
-INPUT_WINDOW_S = 0.1
 _COL_SWITCH = PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]
 
 
