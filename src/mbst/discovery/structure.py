@@ -272,6 +272,25 @@ class StageScorer:
             self._base_fit = (p, float(self._base_per_test.sum()))
         return self._base_fit
 
+    def neutral_start(self, p: np.ndarray, spec: EffectSpec) -> np.ndarray:
+        """``p`` with the effect as near off as its search range allows.
+
+        Where the neutral value lies outside the range the fit searches (a Dahl
+        stiffness of 0, off, searched over ±100x its typical size in log scale), the
+        effect starts at the end of the range nearest to off: the stiffest presliding
+        (travel F_c/σ 100x below typical) for a size that acts inversely, else the
+        nearer bound.
+        """
+        q = np.array(p, float)
+        for n in spec.free:
+            ps = self.model.spec(n)
+            lo = self.model.search_lower.get(n, ps.lower)
+            hi = self.upper.get(n, ps.upper)
+            i = self.model.param_index[n]
+            if not lo <= q[i] <= hi:
+                q[i] = hi if n in spec.inverse_size else float(np.clip(q[i], lo, hi))
+        return q
+
     def residual_n_eff(self, p: np.ndarray) -> float:
         return effective_samples(self._evaluate(p[None], residuals=True)[1])
 
@@ -310,14 +329,20 @@ class StageScorer:
                 # screening to 39 % of the stage cost beside a Coulomb level of 3166 N
                 # (true 2600 N), from this start to 85 %.
                 starts.append(self.handbook_start(p_base, spec, absorbed))
-        # the neutral start: the base refit with the effect off, which the candidate nests,
-        # so that its refit cannot end worse than the base (a flat cost at neutral, a
-        # backlash of zero width, is left by the grid and handbook starts)
-        starts.append(p_base)
         t_grid = time.perf_counter() - t0
-        fr = self._refit(spec, p_base, starts, max_nfev or self.max_nfev,
-                         converge=start is not None)
+        nfev, converge = max_nfev or self.max_nfev, start is not None
+        fr = self._refit(spec, p_base, starts, nfev, converge)
         costs, blocks = self._evaluate(fr.p[None], residuals=True)
+        if not costs[0].sum() <= cost_base:
+            # The neutral start: the base refit with the effect off, which the candidate
+            # nests, so that its refit cannot end worse than the base. Run where the other
+            # starts ended above the base (same guarantee, no cost where they did not);
+            # a cost flat at neutral (a backlash of zero width) is left by those starts.
+            neutral = self._refit(spec, p_base, [self.neutral_start(p_base, spec)], nfev,
+                                  converge)
+            costs_n, blocks_n = self._evaluate(neutral.p[None], residuals=True)
+            if costs_n[0].sum() < costs[0].sum():
+                fr, costs, blocks = neutral, costs_n, blocks_n
         per_test = costs[0]
         per_test_base = self._base_per_test
         cost = refit_cost = float(per_test.sum())

@@ -9,6 +9,7 @@ and still lower the identification cost once the whole cascade is refitted with 
 from __future__ import annotations
 
 import logging
+import time
 
 from mbst.discovery import acceptance, extension
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
@@ -19,6 +20,7 @@ log = logging.getLogger(__name__)
 
 def structure_rounds(state: DiscoveryState) -> None:
     """Round after round of the structure test until one stops (``DiscoveryState.rounds``)."""
+    t0 = time.perf_counter()
     bar = _progress_bar(state.settings.progress)
     shortlist: set[str] | None = None
     for rnd in range(state.settings.max_effects):
@@ -27,6 +29,7 @@ def structure_rounds(state: DiscoveryState) -> None:
             break
     if bar is not None:
         bar.close()
+    state.timings["structure_s"] = time.perf_counter() - t0
 
 
 def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
