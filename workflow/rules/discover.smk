@@ -49,6 +49,7 @@ rule discover:
         tau_s=config["preprocess"]["tau_s"],
         seed=config["identify"]["seed"],
         multistart=config["identify"]["multistart"],
+        joint="--joint" if config["identify"].get("joint_refinement") else "",
         max_effects=discover_setting("max_effects"),
         min_gain=discover_setting("min_relative_gain"),
         min_aic_drop=discover_setting("min_aic_drop"),
@@ -61,7 +62,7 @@ rule discover:
         " && OMP_NUM_THREADS={threads} MKL_NUM_THREADS={threads}"
         " OPENBLAS_NUM_THREADS={threads} NUMBA_NUM_THREADS={threads}"
         " mbst discover {params.campaign_dir:q} --out {params.tmpdir:q} --quiet"
-        " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart}"
+        " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart} {params.joint}"
         " --max-effects {params.max_effects} --min-gain {params.min_gain}"
         " --min-aic-drop {params.min_aic_drop} {params.skip}"
         " > {log:q} 2>&1"
