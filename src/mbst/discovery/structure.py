@@ -31,8 +31,8 @@ from mbst.identify.fitting import FitProblem, FitResult, PreparedTest, solve, tw
 # (or absolute values where a multiple makes no sense).
 _GRID_FACTORS = (0.3, 1.0, 3.0)
 # A candidate nests the base model: refitted from the neutral start (the base refit with
-# the effect off) it cannot end above the base cost but by the start's nudge off a bound
-# (1e-6 of the range) and rounding; beyond this share it counts as not fully tested.
+# the effect off) it cannot end above the base cost but by least_squares' nudge off a
+# bound (1e-10) and rounding; beyond this share it counts as not fully tested.
 NESTED_TOLERANCE = 1e-6
 # A refined candidate continues in steps of the refine budget while a step still lowers
 # its cost by this share, at most this many steps (least_squares' own stop ends it earlier).
@@ -349,9 +349,8 @@ class StageScorer:
         p_fit = fr.p
         fell_back = not cost <= cost_base * (1.0 + NESTED_TOLERANCE)
         if cost > cost_base:
-            # The candidate nests the base model: ending above it (the neutral start's
-            # nudge off a bound, rounding; beyond NESTED_TOLERANCE a refit that failed),
-            # its score is the base's (gain 0).
+            # The candidate nests the base model: ending above it (rounding within
+            # NESTED_TOLERANCE; beyond it a refit that failed), its score is the base's.
             p_fit, per_test, cost = p_base, per_test_base, cost_base
         if cost < cost_base:
             # F-test convention: the noise and its colour are read from the fuller model's
@@ -359,7 +358,8 @@ class StageScorer:
             n_eff = effective_samples(blocks)
         return CandidateScore(
             key=spec.key, effect=spec.effect, component=spec.component, stage=self.stage,
-            tests=[pt.id for pt in self.tests], free=list(spec.free) + self.stage_free, k_effect=len(spec.free),
+            tests=[pt.id for pt in self.tests], free=list(spec.free) + self.stage_free,
+            k_effect=len(spec.free),
             cost_base=cost_base, cost=cost, n_eff=n_eff,
             aic_delta=aic_delta(cost, cost_base, n_eff, len(spec.free)), params=p_fit,
             headline={h: float(p_fit[self.model.param_index[n]])
