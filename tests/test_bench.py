@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 from mbst.cli import main
+from mbst.core.sensors import SensorRealities, coloured_noise, measure
 from mbst.io.campaign import read_campaign
 from mbst.systems.eps import bench
 from mbst.systems.eps import simulate as eps
@@ -23,6 +24,9 @@ from mbst.systems.eps.bench import (
     run_bench,
     simulate_plan,
 )
+from mbst.systems.eps.model import EPS_MODEL
+from mbst.systems.eps.params import EFFECTS
+from mbst.systems.eps.realism import RIG_RANGES, SENSOR_QUANTUM, BenchRealism
 
 LEAD_S = 0.5  # input_profile holds the angle at 0 this long before the motion
 
@@ -221,3 +225,95 @@ def test_cli_rejects_bad_effect(fast_demo, tmp_path, capsys, bad):
     assert "\n" not in err
     assert "Traceback" not in err
     assert not out.exists()  # validated before anything is written
+
+
+# --------------------------------------------------------------------------------------
+# A bench that is not the model (issue #30): drawn rigs, off-grid sizes, real sensors
+# --------------------------------------------------------------------------------------
+
+
+def test_coloured_noise_keeps_its_rms_and_wanders():
+    rng = np.random.default_rng(0)
+    e = coloured_noise(200_000, 0.3, 0.9, rng)
+    assert np.std(e) == pytest.approx(0.3, rel=0.03)
+    assert np.corrcoef(e[:-1], e[1:])[0, 1] == pytest.approx(0.9, abs=0.01)
+    white = coloured_noise(200_000, 0.3, 0.0, rng)
+    assert abs(np.corrcoef(white[:-1], white[1:])[0, 1]) < 0.01
+
+
+def test_sensor_lags_counts_in_steps_and_drifts():
+    t = np.arange(0.0, 2.0, 1e-3)
+    step = (t > 0.5).astype(float)
+    rng = np.random.default_rng(0)
+    lagged = measure(step, t, 0.0, rng, SensorRealities(lag_s=0.01))
+    k = np.searchsorted(t, 0.51)  # one time constant after the step: 1 − e⁻¹ of the way
+    assert lagged[k] == pytest.approx(1 - np.exp(-1), abs=0.05)
+    counted = measure(np.sin(t), t, 0.01, rng, SensorRealities(quantum=0.05))
+    np.testing.assert_allclose(counted / 0.05, np.round(counted / 0.05), atol=1e-9)
+    drifted = measure(np.zeros_like(t), t, 0.1, rng,
+                      SensorRealities(drift=2.0, drift_tau_s=1.0), campaign_time_s=100.0)
+    assert np.mean(drifted) == pytest.approx(0.2, abs=0.02)  # long warmed up: 2 rms
+
+
+def test_plain_bench_realism_is_off():
+    """The default recipe is the plain bench: seed 000's rig and the catalogue sizes."""
+    r = recipe(effects=["backlash:worm_gear"])
+    assert r.rig_values() == {**bench.DEMO_RIG, **DEMO_OFFSETS}
+    assert r.known() == KNOWN
+    assert r.effect_values()[0][1] == EFFECTS["backlash:worm_gear"].default_size
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_drawn_rig_lies_in_the_typical_ranges_and_differs_per_seed(seed):
+    rig = recipe(seed, realism=BenchRealism.realistic()).rig_values()
+    other = recipe(seed + 10, realism=BenchRealism.realistic()).rig_values()
+    for name, (lo, hi, _) in RIG_RANGES.items():
+        assert lo <= rig[name] <= hi, name
+        assert rig[name] != other[name], name
+    # friction regularisation of the bench is not identification's
+    veps = "rack.regularisation_velocity_m_per_s"
+    assert rig[veps] == pytest.approx(0.5 * EPS_MODEL.vector_from({})[EPS_MODEL.param_index[veps]])
+
+
+def test_known_values_are_written_off_by_at_most_the_error():
+    r = recipe(3, realism=BenchRealism.realistic(known_error=0.15))
+    true = {k: r.rig_values()[k] for k in KNOWN}
+    written = r.known()
+    rel = {k: written[k] / true[k] - 1 for k in KNOWN}
+    assert all(abs(v) <= 0.15 for v in rel.values())
+    assert max(abs(rel[k]) for k in ("column_inertia_kgm2", "motor_inertia_kgm2",
+                                     "wheel_mass_kg")) > 0.01
+    assert abs(rel["worm_gear_ratio"]) <= 0.015  # geometry comes from drawings
+
+
+def test_drawn_effect_sizes_are_off_the_catalogue_default_and_keep_what_is_given():
+    widths = []
+    for seed in range(8):
+        r = recipe(seed, effects=["backlash:worm_gear", "stribeck_friction:rack:"
+                                  "static_to_coulomb_ratio=1.3"],
+                   realism=BenchRealism(draw_sizes=True))
+        (_, backlash), (_, stribeck) = r.effect_values()
+        widths.append(backlash["worm_gear.backlash.width_rad"])
+        assert stribeck["rack.stribeck_friction.static_to_coulomb_ratio"] == 1.3
+    assert all(0.005 <= w <= 0.035 for w in widths)
+    assert len(set(widths)) == len(widths)
+    assert EFFECTS["backlash:worm_gear"].default_size["worm_gear.backlash.width_rad"] not in widths
+
+
+def test_realistic_channels_are_quantised_lagged_and_written_to_truth(tmp_path):
+    r = recipe(2, effects=[], realism=BenchRealism.realistic())
+    camp = read_campaign(run_bench(tmp_path, r))
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["realism"]["quantise"] and truth["realism"]["torque_lag_s"] > 0
+    assert camp.known == pytest.approx(truth["known_written"])
+    frame = pd.read_csv(tmp_path / "campaign" / "tests" / "bc_sine.csv")
+    q = SENSOR_QUANTUM["steering_torque_nm"]
+    np.testing.assert_allclose(frame["steering_torque_nm"] / q,
+                               np.round(frame["steering_torque_nm"] / q), atol=1e-6)
+    # the bench integrates on its own grid: without noise it is not identification's twin
+    quiet = recipe(2, effects=[], noise_scale=0.0,
+                   realism=BenchRealism(oversample=3, smoothing=0.5))
+    spec, frame = simulate_plan(quiet)[1]
+    sim = eps.simulate(spec.scenario, spec.motor, frame["time_s"].to_numpy(),
+                       frame["steering_angle_rad"].to_numpy(), quiet.true_params())
+    assert not np.allclose(sim["steering_torque_nm"], frame["steering_torque_nm"], atol=1e-9)

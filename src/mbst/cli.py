@@ -26,6 +26,18 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
+# mbst bench's realism flags → BenchRealism fields
+_REALISM_FLAGS = ("draw_rig", "known_error", "draw_sizes", "noise_ar1", "quantise", "torque_lag_s",
+                  "offset_drift", "friction_drift", "oversample", "smoothing", "plan_jitter")
+
+
+def _bench_realism(args: argparse.Namespace):
+    from mbst.systems.eps.realism import BenchRealism
+
+    given = {f: getattr(args, f) for f in _REALISM_FLAGS if getattr(args, f) is not None}
+    return BenchRealism.realistic(**given) if args.realistic else BenchRealism(**given)
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from mbst.systems.eps.bench import (
         DEFAULT_SENSORS,
@@ -47,7 +59,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip())
     recipe = BenchRecipe(effects=effects, seed=args.seed, noise_scale=args.noise_scale,
                          sensors=sensors, sample_rate_hz=args.sample_rate_hz, name=args.name,
-                         plan=PLANS[args.plan](), assist_characteristic=args.assist_characteristic)
+                         plan=PLANS[args.plan](), assist_characteristic=args.assist_characteristic,
+                         realism=_bench_realism(args))
     try:
         camp = run_bench(args.out, recipe)
     except ValueError as exc:
@@ -159,6 +172,37 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_realism_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("a bench that is not the model (each flag overrides --realistic)")
+    g.add_argument("--realistic", action="store_true",
+                   help="every reality below at production size: drawn rig, known inertias "
+                   "up to 10%% off, drawn effect sizes, AR(1) 0.9 noise, quantised channels, "
+                   "3 ms torque-sensor lag, offset warm-up drift, 3x finer integration with "
+                   "sharper friction, test inputs up to 15%% off the plan")
+    g.add_argument("--draw-rig", action=argparse.BooleanOptionalAction, default=None,
+                   help="rig parameters drawn per seed across eps-model.md's typical ranges")
+    g.add_argument("--known-error", type=float, metavar="FRACTION",
+                   help="known inertias written up to ± this fraction off (geometry 10x less)")
+    g.add_argument("--draw-sizes", action=argparse.BooleanOptionalAction, default=None,
+                   help="effect sizes not given on --effect drawn from production to worn")
+    g.add_argument("--noise-ar1", type=float, metavar="A",
+                   help="noise that wanders: AR(1) coefficient per sample (0 = white)")
+    g.add_argument("--quantise", action=argparse.BooleanOptionalAction, default=None,
+                   help="channels in the steps of a 13-bit encoder and 12-bit ADCs")
+    g.add_argument("--torque-lag-s", type=float, metavar="S",
+                   help="first-order lag of the torque sensor's own filter")
+    g.add_argument("--offset-drift", type=float, metavar="RMS",
+                   help="sensor offsets drift over the campaign by this many noise rms")
+    g.add_argument("--friction-drift", type=float, metavar="FRACTION",
+                   help="Coulomb levels fall by this fraction as the rig warms up")
+    g.add_argument("--oversample", type=int, metavar="K",
+                   help="the bench integrates K times finer than it samples")
+    g.add_argument("--smoothing", type=float, metavar="F",
+                   help="the bench's friction regularisation velocities times F")
+    g.add_argument("--plan-jitter", type=float, metavar="FRACTION",
+                   help="test amplitudes and frequencies drawn up to ± this fraction off")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="mbst",
@@ -195,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--assist-characteristic", default="eps", choices=["eps", "hps"],
                    help="power-steer curve of the powered tests: EPS c1·T + c2·sign(T)·|T|^c3 "
                    "or HPS c1·sign(T)·(e^|T| − 1)")
+    _add_realism_flags(p)
     p.set_defaults(func=_cmd_bench)
 
     p = add("preprocess", "write the filtered channels and the model input a fit compares "

@@ -9,7 +9,7 @@ nothing downstream can peek.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -18,13 +18,23 @@ import pandas as pd
 
 from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
+from mbst.core.sensors import measure
 from mbst.io.campaign import TestSpec, write_campaign
 from mbst.io.outputs import write_json
 from mbst.systems.eps import simulate as eps
 from mbst.systems.eps.assist import conditions, mode_param, route, speed_param
 from mbst.systems.eps.channels import SYSTEM_NAME, TIE_RODS_CONNECTED
 from mbst.systems.eps.model import EPS_MODEL
-from mbst.systems.eps.params import EFFECTS, N_PARAMS, effect
+from mbst.systems.eps.params import EFFECTS, FRICTION_ELEMENTS, N_PARAMS, effect, friction_base
+from mbst.systems.eps.realism import (
+    BenchRealism,
+    draw_effect_sizes,
+    draw_rig,
+    jittered_input,
+    sharper_friction,
+    warm_up_factor,
+    written_known,
+)
 
 # Sensor noise, rms (eps-model.md "Measured-data realities")
 NOISE_RMS = {
@@ -246,16 +256,13 @@ def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
     return t, ang
 
 
-def parse_effect(text: str) -> tuple[str, dict[str, float]]:
-    """``EFFECT:COMPONENT[:param=value,...]`` → (catalogue key, named model values).
-
-    Parameters not given take the catalogue's realistic default size.
-    """
+def parse_effect_given(text: str) -> tuple[str, dict[str, float]]:
+    """``EFFECT:COMPONENT[:param=value,...]`` → (catalogue key, the headline values given)."""
     parts = text.split(":")
     if len(parts) < 2:
         raise ValueError(f"--effect '{text}': expected EFFECT:COMPONENT[:param=value,...]")
     spec = effect(parts[0], parts[1])
-    values = dict(spec.default_size)
+    given: dict[str, float] = {}
     if len(parts) > 2 and parts[2]:
         for item in ":".join(parts[2:]).split(","):
             if "=" not in item:
@@ -268,10 +275,20 @@ def parse_effect(text: str) -> tuple[str, dict[str, float]]:
                     f"(it has: {', '.join(spec.headline)})"
                 )
             try:
-                values[spec.headline[k]] = float(v)
+                given[k] = float(v)
             except ValueError:
                 raise ValueError(f"--effect '{text}': '{v}' is not a number") from None
-    return spec.key, values
+    return spec.key, given
+
+
+def parse_effect(text: str) -> tuple[str, dict[str, float]]:
+    """``EFFECT:COMPONENT[:param=value,...]`` → (catalogue key, named model values).
+
+    Parameters not given take the catalogue's realistic default size.
+    """
+    key, given = parse_effect_given(text)
+    spec = EFFECTS[key]
+    return key, {**spec.default_size, **{spec.headline[h]: v for h, v in given.items()}}
 
 
 @dataclass
@@ -291,15 +308,38 @@ class BenchRecipe:
     assist_characteristic: str = "eps"
     assist_curves: dict[str, dict[str, float]] | None = None
     assist_damping: dict[float, float] = field(default_factory=lambda: dict(DEMO_ASSIST_DAMPING))
+    realism: BenchRealism = field(default_factory=BenchRealism)
 
     def effect_values(self) -> list[tuple[str, dict[str, float]]]:
-        return [parse_effect(e) for e in self.effects]
+        if not self.realism.draw_sizes:
+            return [parse_effect(e) for e in self.effects]
+        out = []
+        for i, text in enumerate(self.effects):
+            key, given = parse_effect_given(text)
+            out.append((key, draw_effect_sizes(self.seed, i, key, given)))
+        return out
+
+    def rig_values(self) -> dict[str, float]:
+        """The rig on the bench: parameters and sensor offsets (drawn per seed if asked)."""
+        r = self.realism
+        rig = draw_rig(self.seed, self.offsets) if r.draw_rig else {**self.rig, **self.offsets}
+        return sharper_friction(rig, r.smoothing) if r.smoothing != 1.0 else rig
+
+    def known(self) -> dict[str, float]:
+        """The known values ``campaign.yaml`` states (off by ``realism.known_error``)."""
+        rig = self.rig_values()
+        return written_known(self.seed, {k: rig[k] for k in KNOWN}, self.realism.known_error)
+
+    def planned(self) -> list[PlannedTest]:
+        plan = self.plan or demo_plan()
+        return [replace(pt, input=jittered_input(pt.input, self.seed, i, self.realism.plan_jitter))
+                for i, pt in enumerate(plan)]
 
     def specs(self) -> list[TestSpec]:
         return [TestSpec(id=pt.id, file=f"tests/{pt.id}.csv", scenario=pt.scenario,
                          input=dict(pt.input), motor=pt.motor, role=pt.role,
                          vehicle_speed_kph=pt.vehicle_speed_kph, assist_mode=pt.assist_mode)
-                for pt in (self.plan or demo_plan())]
+                for pt in self.planned()]
 
     def campaign_extra(self) -> dict:
         powered = any(s.motor == "assist" for s in self.specs())
@@ -320,7 +360,7 @@ class BenchRecipe:
     def true_params(self) -> np.ndarray:
         """The rig's parameters in ``model()``'s layout."""
         model = self.model()
-        values = {**self.rig, **self.offsets}
+        values = self.rig_values()
         for _, v in self.effect_values():
             values.update(v)
         idx = model.param_index
@@ -339,6 +379,10 @@ class BenchRecipe:
         return model.vector_from(values)
 
 
+# pause between two tests of a campaign (the rig warms up over the campaign's running time)
+SETUP_TIME_S = 30.0
+
+
 def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
     """Noisy measured tests of the recipe's plan, deterministic in the seed."""
     model = recipe.model()
@@ -347,22 +391,40 @@ def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
         if s not in NOISE_RMS:
             raise ValueError(f"unknown sensor '{s}' (known: {', '.join(NOISE_RMS)})")
     tests = []
-    plan = recipe.plan or demo_plan()
-    for i, (pt, spec) in enumerate(zip(plan, recipe.specs())):
+    campaign_time_s = 0.0
+    for i, (pt, spec) in enumerate(zip(recipe.planned(), recipe.specs())):
         rng = np.random.default_rng([recipe.seed, i])  # per test: order-independent
-        t, ang = input_profile(pt.input, pt.sample_rate_hz or recipe.sample_rate_hz)
+        rate = pt.sample_rate_hz or recipe.sample_rate_hz
         # the test's own assist curve and damping, in the kernel's layout
         p_test = route(model, spec, p[None])[0][:N_PARAMS]
-        sim = eps.simulate(pt.scenario, pt.motor, t, ang, p_test)
-        sim["steering_angle_rad"] = ang
+        t, ang, sim = _run_test(pt, p_test, rate, recipe.realism, campaign_time_s)
         cols = {"time_s": t}
         for ch in _channels_for(pt.scenario, recipe.sensors):
             if ch == "motor_current_a" and pt.motor != "assist":
                 continue  # engine off: the current channel is flat, nothing is logged
-            noise = NOISE_RMS[ch] * recipe.noise_scale
-            cols[ch] = sim[ch] + noise * rng.standard_normal(len(t))
+            clean = ang if ch == "steering_angle_rad" else sim[ch]
+            cols[ch] = measure(clean, t, NOISE_RMS[ch] * recipe.noise_scale, rng,
+                               recipe.realism.sensor(ch), campaign_time_s)
         tests.append((spec, pd.DataFrame(cols)))
+        campaign_time_s += float(t[-1] - t[0]) + SETUP_TIME_S
     return tests
+
+
+def _run_test(pt: PlannedTest, p_test: np.ndarray, rate_hz: float, realism: BenchRealism,
+              campaign_time_s: float) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Time, true angle and clean channels of one test, on the bench's own integration grid."""
+    k = max(1, int(realism.oversample))
+    if realism.friction_drift > 0:
+        p_test = p_test.copy()
+        factor = warm_up_factor(realism.friction_drift, campaign_time_s)
+        for elem in FRICTION_ELEMENTS:
+            p_test[friction_base(elem)] *= factor
+    t, ang = input_profile(pt.input, rate_hz * k)
+    sim = eps.simulate(pt.scenario, pt.motor, t, ang, p_test)
+    if k > 1:  # integrated between the samples, logged at the sample rate
+        t, ang = t[::k], ang[::k]
+        sim = {ch: v[::k] for ch, v in sim.items()}
+    return t, ang, sim
 
 
 def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
@@ -402,6 +464,8 @@ def truth_record(recipe: BenchRecipe) -> dict:
         "noise_scale": recipe.noise_scale,
         "noise_rms": {k: v * recipe.noise_scale for k, v in NOISE_RMS.items()},
         "effects": effects,
+        "realism": recipe.realism.as_record(),
+        "known_written": recipe.known(),
         "params": model.as_dict(p),
     }
 
@@ -412,7 +476,7 @@ def run_bench(out_dir: str | Path, recipe: BenchRecipe, overwrite: bool = True) 
     out.mkdir(parents=True, exist_ok=True)
     tests = simulate_plan(recipe)
     camp = write_campaign(
-        out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=dict(KNOWN), tests=tests,
+        out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=recipe.known(), tests=tests,
         extra={"generated_by": "mbst bench", "seed": recipe.seed, **recipe.campaign_extra()},
         overwrite=overwrite,
     )
