@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,8 @@ from mbst.discovery.state import DiscoverSettings
 from mbst.identify.cascade import IdentifyResult, correlate
 from mbst.io.campaign import Campaign
 
+log = logging.getLogger(__name__)
+
 
 @dataclass
 class Comparison:
@@ -24,6 +27,7 @@ class Comparison:
     table: pd.DataFrame
     twins: dict[str, dict]
     base_correlation: pd.DataFrame  # the base model on the controls (identify's table)
+    failures: list[str] = field(default_factory=list)  # model families that could not run
 
 
 def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
@@ -48,25 +52,43 @@ def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
     _, ext_tw = correlate(controls, p_ext)
     add("extended", ext_tw)
     ctrl_res = [residual_data(pt, base.params, base_twins[pt.id]) for pt in controls]
+    failures: list[str] = []
     if settings.wants(base.model, "sparse"):
-        from mbst.discovery.evidence.sindy import SindyControlModel
-
-        sm = SindyControlModel().fit(id_res)
-        add("sindy", {r.id: sm.predict(r) for r in ctrl_res})
+        _optional("sindy", lambda: _sindy_twins(id_res, ctrl_res), add, failures)
     if neural_model is not None:
-        add("neural", {r.id: neural_model.predict(r) for r in ctrl_res})
+        _optional("neural", lambda: {r.id: neural_model.predict(r) for r in ctrl_res}, add,
+                  failures)
     truth = _truth_params(campaign, base.model)
     if truth is not None:
         _, true_tw = correlate(controls, truth)
         add("true", true_tw)
     df = pd.DataFrame(rows, columns=["test", "channel", "model", "fit_percent"])
-    return Comparison(df, twins, base_correlation)
+    return Comparison(df, twins, base_correlation, failures)
+
+
+def _sindy_twins(id_res: list[TestResidual], ctrl_res: list[TestResidual]) -> dict:
+    from mbst.discovery.evidence.sindy import SindyControlModel
+
+    sm = SindyControlModel().fit(id_res)
+    return {r.id: sm.predict(r) for r in ctrl_res}
+
+
+def _optional(model: str, twins_of, add, failures: list[str]) -> None:
+    """A data-driven model family on the controls; its failure costs its row, not the answer."""
+    try:
+        tw = twins_of()
+    except Exception as exc:  # one model family must never sink the discovery
+        msg = f"control twins of the {model} model: {type(exc).__name__}: {exc}"
+        log.warning("%s (its row is left out of the comparison)", msg)
+        failures.append(msg)
+        return
+    add(model, tw)
 
 
 def mean_gain(df: pd.DataFrame) -> float:
     if df.empty:
         return 0.0
-    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent")
+    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent", dropna=False)
     return float((wide["extended"] - wide["base"]).mean())
 
 

@@ -18,6 +18,7 @@ gain of every model family side by side.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -38,6 +39,8 @@ from mbst.discovery.rounds.stickslip import stick_slip_round
 from mbst.discovery.state import DiscoverSettings, DiscoveryState, Finding, total_cost
 from mbst.identify.cascade import IdentifyResult, identify
 from mbst.io.campaign import Campaign
+
+log = logging.getLogger(__name__)
 
 FORMAT = "mbst-discovery/1"
 
@@ -75,6 +78,8 @@ class DiscoveryResult:
     benchmark: dict | None = None
     # what the tests could show of each pair not in the extended model (resolution.py)
     resolution: list[Resolution] = field(default_factory=list)
+    # what failed on the way (an evidence method, a model family, a figure): never the answer
+    failures: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
@@ -86,7 +91,7 @@ class DiscoveryResult:
             where = " or ".join([f.component, *f.indistinguishable_from])
             lines.append(f"  found {f.effect} in {where} ({pars}), confidence "
                          f"{f.confidence:.2f}")
-        blind = [r.key for r in self.resolution if r.sizes and r.resolved_from != 1.0]
+        blind = [r.key for r in self.resolution if r.sizes and not r.resolved_at_realistic_size]
         if blind:
             lines.append("  these tests would not show at their realistic size: "
                          f"{', '.join(blind)} (discovery.md, resolution.csv)")
@@ -162,12 +167,27 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         "identification_cost_extended": state.cost,
         "effective_samples": n_eff,
     }
+    failures = [f"{name} evidence: {ev['error']}" for name, ev in
+                (("sparse-regression", sparse_ev), ("neural-residual", neural_ev))
+                if ev and ev.get("error")] + cmp.failures
     return DiscoveryResult(
         campaign=state.campaign.name, base=base, extended_params=state.p, findings=findings,
         rounds=state.rounds, locations=locations, sparse=sparse_ev, neural=neural_ev,
         comparison=cmp.table, gain=gain, wall_s=time.perf_counter() - t_start,
         timings=timings, twins=cmp.twins, neural_model=neural_model,
         residual_tests=state.residuals, settings=settings,
-        benchmark=model.benchmark(base, state.p) if model.benchmark is not None else None,
-        resolution=state.resolution,
+        benchmark=_benchmark(model, base, state.p, failures),
+        resolution=state.resolution, failures=failures,
     )
+
+
+def _benchmark(model, base: IdentifyResult, p: np.ndarray, failures: list[str]) -> dict | None:
+    """The family's published figures of merit; a failure there costs the table only."""
+    if model.benchmark is None:
+        return None
+    try:
+        return model.benchmark(base, p)
+    except Exception as exc:  # a benchmark table must never sink the discovery
+        failures.append(f"benchmark table: {type(exc).__name__}: {exc}")
+        log.warning("benchmark table failed: %s: %s", type(exc).__name__, exc)
+        return None

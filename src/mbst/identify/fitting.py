@@ -457,7 +457,8 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
     # pseudo-inverse: a rank-deficient Jacobian is the non-identifiable case, not an error
     uu, sv, vt = np.linalg.svd(jac, full_matrices=False)
     tol = sv.max() * 1e-9 if sv.size else 0.0
-    inv = np.where(sv > tol, 1.0 / np.maximum(sv, 1e-300) ** 2, 0.0)
+    inv = np.zeros_like(sv)
+    inv[sv > tol] = 1.0 / sv[sv > tol] ** 2
     bread = (vt.T * inv) @ vt
     cov_u = bread @ hac_meat(jac, res.fun[:m], problem.block_sizes(), n) @ bread
     std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,8 @@ from mbst.discovery.rounds.resolution import Resolution
 from mbst.io.campaign import Campaign
 from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.report import discovery_figures as figures
+
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------------------
@@ -58,6 +61,7 @@ def discovery_record(result: DiscoveryResult) -> dict:
             for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
         },
         "resolution": [r.record() for r in result.resolution],
+        "failures": list(result.failures),
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
         "wall_s": round(result.wall_s, 2),
         "system": result.base.model.name,
@@ -66,22 +70,76 @@ def discovery_record(result: DiscoveryResult) -> dict:
 
 
 def write_discover_outputs(result: DiscoveryResult, out: Path) -> None:
+    """The answer first; then every table, figure and the page, each on its own.
+
+    A failure in one of them is logged, listed under "What failed" in
+    ``discovery.md`` and in ``discovery.json`` — it never loses the answer.
+    """
+    failures = result.failures
     write_json(out / "discovery.json", discovery_record(result))
     if result.benchmark is not None:
-        write_json(out / "benchmark.json", result.benchmark)
-    result.comparison.to_csv(out / "comparison.csv", index=False, float_format="%.4f")
+        _guarded("benchmark.json", lambda: write_json(out / "benchmark.json", result.benchmark),
+                 failures)
+    _guarded("comparison.csv", lambda: result.comparison.to_csv(
+        out / "comparison.csv", index=False, float_format="%.4f"), failures,
+        out / "comparison.csv")
+    _guarded("structure_test.csv", lambda: _structure_table(result).to_csv(
+        out / "structure_test.csv", index=False, float_format="%.6g"), failures)
+    _guarded("residual_locations.csv", lambda: pd.DataFrame(result.locations).to_csv(
+        out / "residual_locations.csv", index=False, float_format="%.4f"), failures)
+    _guarded("resolution.csv", lambda: resolution_table(result.resolution).to_csv(
+        out / "resolution.csv", index=False, float_format="%.6g"), failures,
+        out / "resolution.csv")
+    figdir = out / "figures"
+    figdir.mkdir(parents=True, exist_ok=True)
+    figures.write_all(result, figdir, failures)
+    try:
+        page = markdown_summary(result)
+    except Exception as exc:  # the page is a view of the answer: fall back to a plain one
+        _record_failure("discovery.md", exc, failures)
+        page = fallback_summary(result)
+    write_markdown(out / "discovery.md", page)
+    if failures:  # the answer again, now with what failed beside it
+        write_json(out / "discovery.json", discovery_record(result))
+
+
+def _structure_table(result: DiscoveryResult) -> pd.DataFrame:
     rows = [{"round": r["round"], **{k: v for k, v in c.items() if k != "headline"},
              "headline": json.dumps(c["headline"])} for r in result.rounds
             for c in r["candidates"]]
-    pd.DataFrame(rows).to_csv(out / "structure_test.csv", index=False, float_format="%.6g")
-    pd.DataFrame(result.locations).to_csv(out / "residual_locations.csv", index=False,
-                                          float_format="%.4f")
-    resolution_table(result.resolution).to_csv(out / "resolution.csv", index=False,
-                                               float_format="%.6g")
-    figdir = out / "figures"
-    figdir.mkdir(parents=True, exist_ok=True)
-    figures.write_all(result, figdir)
-    write_markdown(out / "discovery.md", markdown_summary(result))
+    return pd.DataFrame(rows)
+
+
+def _record_failure(what: str, exc: BaseException, failures: list[str]) -> None:
+    msg = f"{what}: {type(exc).__name__}: {exc}"
+    log.warning("could not write %s", msg, exc_info=exc)
+    failures.append(msg)
+
+
+def _guarded(what: str, write, failures: list[str], required: Path | None = None) -> None:
+    """Run one writer; on failure record it (and leave a stub where the workflow needs a file)."""
+    try:
+        write()
+    except Exception as exc:  # one table or figure must never lose the answer
+        _record_failure(what, exc, failures)
+        if required is not None:
+            required.write_text(f"# not written: {type(exc).__name__}: {exc}\n")
+
+
+def fallback_summary(result: DiscoveryResult) -> str:
+    """The findings and what failed, when the full page cannot be drawn up."""
+    lines = [f"# Discovery on `{result.campaign}`", ""]
+    lines += [f"- **{f.effect} / {f.component}** ({f.confidence:.2f}): {f.evidence}"
+              for f in result.findings] or ["No finding."]
+    return "\n".join(lines + failure_lines(result.failures)) + "\n"
+
+
+def failure_lines(failures: list[str]) -> list[str]:
+    if not failures:
+        return []
+    return ["", "## What failed", "",
+            "The answer above stands; these parts of the evidence or report could not be made "
+            "(details in the log):", ""] + [f"- {f}" for f in failures]
 
 
 def markdown_summary(result: DiscoveryResult) -> str:
@@ -108,7 +166,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines += resolution_lines(result)
     lines += ["", "## Control tests (held out): FIT %", ""]
     wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
-                                         values="fit_percent", sort=False)
+                                         values="fit_percent", sort=False, dropna=False)
     models = list(dict.fromkeys(result.comparison.model))
     lines += ["| test | channel | " + " | ".join(models) + " |",
               "|---|---|" + "---|" * len(models)]
@@ -116,13 +174,15 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines.append(f"| {t} | {ch} | " + " | ".join(f"{row[m]:.1f}" for m in models) + " |")
     if result.benchmark and "published" in result.benchmark:
         lines += benchmark_table(result.benchmark)
+    lines += failure_lines(result.failures)
     return "\n".join(lines) + "\n"
 
 
 def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
     """One row per (pair, size) of the predicted scores (``resolution.csv``)."""
     columns = ["effect", "component", "stage", "multiple_of_realistic_size",
-               "predicted_relative_gain", "predicted_aic_delta", "resolved"]
+               "predicted_relative_gain", "predicted_aic_delta", "resolved",
+               "detection_limit_multiple"]
     if not resolution:
         return pd.DataFrame(columns=columns)
     return pd.DataFrame([
@@ -130,7 +190,8 @@ def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
          "multiple_of_realistic_size": s.multiple,
          **{f"size.{k}": v for k, v in s.values.items()},
          "predicted_relative_gain": s.share, "predicted_aic_delta": s.aic_delta,
-         "resolved": r.resolved_from is not None and s.multiple >= r.resolved_from}
+         "resolved": r.resolved_from is not None and s.multiple >= r.resolved_from,
+         "detection_limit_multiple": r.resolved_from}
         for r in resolution for s in r.sizes])
 
 
@@ -141,12 +202,13 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
              "Predicted share of its stage's residual cost each catalogue pair would remove if "
              "the rig had it at its realistic size (the twin with the effect minus the twin "
              "without, less what the stage's parameters absorb; `resolution.csv`), and the "
-             f"smallest size that clears the margins ({100 * st.min_relative_gain:.0f} % and "
+             "smallest size tried (0.1× to 4× the realistic size) that clears the margins — "
+             f"the detection limit of these tests ({100 * st.min_relative_gain:.0f} % and "
              f"ΔAIC ≤ −{st.min_aic_drop:.0f}). An estimate: a pair marked *not resolved* can "
              "be in the rig without any finding here; longer or other tests would be needed "
              "(figure: `figures/resolution.png`).",
              "", "| effect | component | stage | share at realistic size | ΔAIC | "
-             "resolved from |", "|---|---|---|---|---|---|"]
+             "detection limit (smallest size resolved) |", "|---|---|---|---|---|---|"]
     # the blind spots first, then the pairs that need the largest size
     model = result.base.model
     for r in sorted(result.resolution, key=lambda r: (r.stage is not None,
@@ -157,20 +219,30 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
             lines.append(f"| {r.effect} | {r.component} | – | – | – | **not tested**: no "
                          f"identification test where it acts ({where}) |")
             continue
-        one = next((s for s in r.sizes if s.multiple == 1.0), None)
+        one = r.size_at(1.0)
         if one is None:  # the simulator could not run the realistic size
             continue
-        if r.resolved_from is None:
-            last = r.sizes[-1]
-            where = ("**not resolved** up to " + ", ".join(
-                f"{k} = {v:.3g}" for k, v in last.values.items() if k in r.size_parameters))
+        limit = r.detection_limit()
+        if limit is None:
+            where = "**not resolved** up to " + size_text(r.sizes[-1], r.size_parameters)
         else:
-            s = next(s for s in r.sizes if s.multiple == r.resolved_from)
-            where = ("realistic size" if s.multiple == 1.0 else f"{s.multiple:g}× (" + ", ".join(
-                f"{k} = {v:.3g}" for k, v in s.values.items() if k in r.size_parameters) + ")")
+            smallest = " (the smallest tried)" if limit is r.sizes[0] else ""
+            where = f"from {size_text(limit, r.size_parameters)}{smallest}, " + (
+                "below the realistic size" if limit.multiple < 1 else
+                "the realistic size" if limit.multiple == 1 else f"{limit.multiple:g}× it")
         lines.append(f"| {r.effect} | {r.component} | {r.stage} | {100 * one.share:.1f} % | "
                      f"{one.aic_delta:.0f} | {where} |")
     return lines
+
+
+def size_text(size, size_parameters: list[str]) -> str:
+    """A size in the effect's own unit: ``width_rad = 0.00524 (0.30°)``."""
+    parts = []
+    for k, v in size.values.items():
+        if k in size_parameters:
+            deg = f" ({np.degrees(v):.2f}°)" if k.endswith("_rad") else ""
+            parts.append(f"{k} = {v:.3g}{deg}")
+    return ", ".join(parts)
 
 
 def benchmark_table(bench: dict) -> list[str]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ import numpy as np
 from mbst.discovery.rounds import equation_error, stickslip
 from mbst.report import plots
 from mbst.report.plots import LABELS, MODEL_STYLE, SCALE, motion_reversals, plt
+
+log = logging.getLogger(__name__)
 
 
 def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
@@ -94,20 +97,19 @@ def structure_bars(result, path: Path) -> None:
 
 def resolution_bars(result, path: Path) -> bool:
     """Predicted share of its stage's cost each pair would remove, realistic size and beyond."""
-    res = sorted((r for r in result.resolution if r.sizes and r.sizes[0].multiple == 1.0),
-                 key=lambda r: r.sizes[0].share)
+    res = sorted((r for r in result.resolution if r.size_at(1.0) is not None),
+                 key=lambda r: r.size_at(1.0).share)
     if not res:
         return False
     fig, ax = plt.subplots(figsize=(11.0, 0.3 * len(res) + 1.8))
     y = np.arange(len(res))
-    colors = ["tab:green" if r.resolved_from == 1.0 else
+    colors = ["tab:green" if r.resolved_at_realistic_size else
               "tab:orange" if r.resolved_from else "tab:gray" for r in res]
-    ax.barh(y, [100 * r.sizes[0].share for r in res], color=colors)
+    ax.barh(y, [100 * r.size_at(1.0).share for r in res], color=colors)
     most = max(s.multiple for r in res for s in r.sizes)
     ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
                zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
     ax.set_yticks(y, [f"{r.key} ({r.stage})" + (
-        "" if r.resolved_from == 1.0 else
         f" — from {r.resolved_from:g}×" if r.resolved_from else
         f" — not resolved ({100 * r.sizes[-1].share:.0f} %, ΔAIC {r.sizes[-1].aic_delta:.0f}"
         f" at {r.sizes[-1].multiple:g}×)")
@@ -136,7 +138,7 @@ def comparison_bars(result, path: Path) -> None:
     if df.empty:
         return
     wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent",
-                          sort=False)
+                          sort=False, dropna=False)
     models = list(dict.fromkeys(df.model))
     fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 4.2))
     x = np.arange(len(wide))
@@ -203,22 +205,37 @@ def stick_slip(result, path: Path) -> bool:
     return True
 
 
-def write_all(result, figdir: Path) -> None:
+def write_all(result, figdir: Path, failures: list[str] | None = None) -> None:
+    """Every discovery figure, each on its own: one that fails is listed in ``failures``."""
     prepared = result.base.prepared
     controls = [prepared[t] for t in dict.fromkeys(result.comparison.test)]
     models = {m: tw for m, tw in result.twins.items()}
     shown = controls or [prepared[r.id] for r in result.residual_tests]
-    reversal_zoom(result, figdir / "reversal_zoom.png")
-    structure_bars(result, figdir / "structure_test.png")
-    resolution_bars(result, figdir / "resolution.png")
-    stick_slip(result, figdir / "stick_slip.png")
-    comparison_bars(result, figdir / "comparison.png")
-    plots.time_histories(shown, models, figdir / "time_histories.png")
-    plots.hysteresis_loops(shown, {m: models[m] for m in ("base", "extended") if m in models},
-                           figdir / "hysteresis.png")
-    plots.residuals(shown, {m: models[m] for m in ("base", "extended") if m in models},
-                    figdir / "residuals.png")
+    physics = {m: models[m] for m in ("base", "extended") if m in models}
+    drawers = {
+        "reversal_zoom": lambda p: reversal_zoom(result, p),
+        "structure_test": lambda p: structure_bars(result, p),
+        "resolution": lambda p: resolution_bars(result, p),
+        "stick_slip": lambda p: stick_slip(result, p),
+        "comparison": lambda p: comparison_bars(result, p),
+        "time_histories": lambda p: plots.time_histories(shown, models, p),
+        "hysteresis": lambda p: plots.hysteresis_loops(shown, physics, p),
+        "residuals": lambda p: plots.residuals(shown, physics, p),
+    }
     if result.neural_model is not None:
-        from mbst.discovery.evidence.neural import plot_learned
+        drawers["neural_learned"] = lambda p: _neural_learned(result, p)
+    for name, draw in drawers.items():
+        try:
+            draw(figdir / f"{name}.png")
+        except Exception as exc:  # a figure is a view of the answer, never the answer
+            log.warning("figure %s.png failed: %s: %s", name, type(exc).__name__, exc,
+                        exc_info=exc)
+            plt.close("all")
+            if failures is not None:
+                failures.append(f"figure {name}.png: {type(exc).__name__}: {exc}")
 
-        plot_learned(result.neural_model, result.residual_tests, figdir / "neural_learned.png")
+
+def _neural_learned(result, path: Path) -> None:
+    from mbst.discovery.evidence.neural import plot_learned
+
+    plot_learned(result.neural_model, result.residual_tests, path)

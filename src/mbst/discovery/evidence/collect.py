@@ -5,8 +5,12 @@ A failure of one method is recorded in its place and never sinks the discovery.
 
 from __future__ import annotations
 
+import logging
+
 from mbst.discovery.data import TestResidual
 from mbst.discovery.state import DiscoverSettings
+
+log = logging.getLogger(__name__)
 
 
 def sparse_evidence(id_res: list[TestResidual]) -> dict | None:
@@ -15,6 +19,7 @@ def sparse_evidence(id_res: list[TestResidual]) -> dict | None:
     try:
         ev = residual_regression(id_res)
     except Exception as exc:  # evidence only: a failure must not sink the discovery
+        log.warning("sparse-regression evidence failed: %s: %s", type(exc).__name__, exc)
         return {"error": f"{type(exc).__name__}: {exc}", "ranking": []}
     d = ev.to_dict()
     d["ranking"] = [list(x) for x in ev.ranking]
@@ -27,7 +32,11 @@ def neural_evidence(id_res: list[TestResidual], settings: DiscoverSettings):
     kw = {"seed": settings.identify.seed}
     if settings.neural_iterations is not None:
         kw["iterations"] = settings.neural_iterations
-    model = neural.NeuralResidual(**kw).fit(id_res)
-    ev = neural.explain(model, id_res)
+    try:
+        model = neural.NeuralResidual(**kw).fit(id_res)
+        ev = neural.explain(model, id_res)
+    except Exception as exc:  # evidence only: a failure must not sink the discovery
+        log.warning("neural-residual evidence failed: %s: %s", type(exc).__name__, exc)
+        return None, {"error": f"{type(exc).__name__}: {exc}", "ranking": []}
     ev["train_seconds"] = getattr(model, "train_seconds", None)
     return model, ev

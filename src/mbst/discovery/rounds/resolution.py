@@ -45,8 +45,10 @@ from mbst.discovery.state import DiscoveryState
 from mbst.discovery.structure import StageScorer, aic_delta, stage_for
 from mbst.identify.fitting import PreparedTest, twins_of_tests
 
-# multiples of the catalogue's realistic size tried (each clipped to the parameter's bounds)
-SIZE_MULTIPLES = (1.0, 1.5, 2.0, 3.0, 4.0)
+# multiples of the catalogue's realistic size tried (each clipped to the parameter's bounds):
+# down to a tenth, so the smallest size these tests resolve (the detection limit) is stated
+# for production-size effects too, and up to 4x for the worn ones
+SIZE_MULTIPLES = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0)
 
 
 @dataclass
@@ -73,6 +75,17 @@ class Resolution:
     size_parameters: list[str]  # headline names scaled from the neutral value
     sizes: list[SizeScore] = field(default_factory=list)
     resolved_from: float | None = None  # the smallest multiple that clears both margins
+
+    @property
+    def resolved_at_realistic_size(self) -> bool:
+        return self.resolved_from is not None and self.resolved_from <= 1.0
+
+    def size_at(self, multiple: float) -> SizeScore | None:
+        return next((s for s in self.sizes if s.multiple == multiple), None)
+
+    def detection_limit(self) -> SizeScore | None:
+        """The smallest size tried that these tests resolve (None: none of them)."""
+        return next((s for s in self.sizes if s.multiple == self.resolved_from), None)
 
     def record(self) -> dict:
         return {"effect": self.effect, "component": self.component, "stage": self.stage,
