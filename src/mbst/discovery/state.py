@@ -91,6 +91,8 @@ class Proposal:
     cv: dict
     weight: float  # Akaike weight among the stage's candidates
     ties: list[tuple[CandidateScore, float]]
+    # acceptance.ranking_bootstrap: how often resamples of the stage's data still name it
+    bootstrap: dict = field(default_factory=dict)
 
 
 def total_cost(tests: list[PreparedTest], p: np.ndarray, scales: dict[str, float],

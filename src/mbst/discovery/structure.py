@@ -291,6 +291,20 @@ class StageScorer:
                 q[i] = hi if n in spec.inverse_size else float(np.clip(q[i], lo, hi))
         return q
 
+    def sample_costs(self, ps: np.ndarray) -> np.ndarray:
+        """Cost of each row of ``ps`` per (decimated) time sample, channels summed and the
+        stage's tests one after the other; shape (len(ps), samples). Sums to ``costs``."""
+        prob = self.problem(self.stage_free, self.base, self.tests)
+        rows = [[] for _ in ps]
+        for pt, twins in zip(self.tests, twins_of_tests(self.tests, [ps] * len(self.tests)),
+                             strict=True):
+            n = len(pt.time_s[:: prob.decimate])
+            for i, tw in enumerate(twins):
+                r = prob._res_of_twin(pt, tw).reshape(-1, n)
+                rows[i].append(0.5 * np.sum(r * r, axis=0) if np.all(np.isfinite(r))
+                               else np.full(n, np.inf))
+        return np.array([np.concatenate(r) for r in rows])
+
     def residual_n_eff(self, p: np.ndarray) -> float:
         return effective_samples(self._evaluate(p[None], residuals=True)[1])
 

@@ -74,8 +74,11 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
     rec["identification_cost"] = {"before": cost_before, "after": state.cost}
     ties = acceptance.tied_components(best, scores, {r.id: r for r in state.residuals},
                                       state.model)
+    boot = acceptance.ranking_bootstrap(scorer, best, scores, settings.min_relative_gain,
+                                        settings.identify.seed, tuple(s for s, _ in ties))
+    rec["bootstrap"] = boot
     state.proposals.append(Proposal(best, scores[1] if len(scores) > 1 else None, cv,
-                                    acceptance.akaike_weight(best, scores), ties))
+                                    acceptance.akaike_weight(best, scores), ties, boot))
     # an effect that did not help the base model does not start to once another is added
     return {s.key for s in scores[1:]
             if acceptance.shows_evidence(s, settings.min_relative_gain, settings.min_aic_drop)}
@@ -146,11 +149,13 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
     spec = model.effects[best.key]
     params = {h: float(state.p[model.param_index[n]]) for h, n in spec.headline.items()}
     cv_frac = cv["wins"] / cv["folds"] if cv.get("folds") else 1.0
+    boot = proposal.bootstrap.get("confidence")
     return Finding(
         effect=spec.effect, component=spec.component, parameters=params,
-        confidence=proposal.weight * cv_frac,
+        # how often the data, resampled, still name it — and the held-out folds agree
+        confidence=(boot if boot is not None else proposal.weight) * cv_frac,
         evidence=evidence_text(best, proposal.runner, cv, state.regions, sparse, neural,
-                               proposal.ties),
+                               proposal.ties, proposal.bootstrap),
         stage=best.stage, relative_gain=best.relative_gain, aic_delta=best.aic_delta, cv=cv,
         indistinguishable_from=[s.component for s, _ in proposal.ties],
     )
@@ -158,7 +163,8 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
 
 def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
               regions: list[tuple[str, float]], sparse: dict | None,
-              neural: dict | None, ties: list[tuple[CandidateScore, float]] = ()) -> str:
+              neural: dict | None, ties: list[tuple[CandidateScore, float]] = (),
+              bootstrap: dict | None = None) -> str:
     parts = [
         f"structure test: inserting {best.effect} in {best.component} and refitting the "
         f"{best.stage} stage removed {100 * best.relative_gain:.1f} % of its residual cost "
@@ -173,6 +179,12 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
     if runner is not None:
         parts.append(f"runner-up {runner.key} removed {100 * runner.relative_gain:.1f} % "
                      f"(ΔAIC {runner.aic_delta:.0f})")
+    if bootstrap and bootstrap.get("confidence") is not None:
+        lo, hi = bootstrap["gain_5_95_percent"]
+        parts.append(f"block bootstrap: best and above the margin in "
+                     f"{100 * bootstrap['confidence']:.0f} % of {bootstrap['resamples']} "
+                     f"resamples of the stage's data (gain {100 * lo:.1f}–{100 * hi:.1f} %, "
+                     f"5–95 %)")
     if cv.get("folds"):
         parts.append(f"leave-one-test-out: better on {cv['wins']}/{cv['folds']} held-out tests, "
                      f"held-out cost −{100 * cv['held_out_gain']:.1f} %")
