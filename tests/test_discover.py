@@ -19,9 +19,10 @@ import pytest
 import mbst.discovery.extension as extension_mod
 import mbst.discovery.pipeline as pipeline_mod
 from mbst.cli import main
+from mbst.discovery import acceptance
 from mbst.discovery.pipeline import DiscoverSettings, discover
 from mbst.discovery.rounds.resolution import scaled_size
-from mbst.discovery.structure import effective_samples, stage_for, start_grid
+from mbst.discovery.structure import CandidateScore, effective_samples, stage_for, start_grid
 from mbst.io.campaign import read_campaign
 from mbst.report.discovery import discovery_record, write_discover_outputs
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
@@ -664,3 +665,46 @@ def test_issue_34_effects_are_named_on_a_drawn_rig(tmp_path_factory, planted):
         return
     f = result.findings[0]
     assert (f.effect, f.component) == tuple(key.split(":")), f.evidence
+
+
+class _TableScorer:
+    """A stage whose per-sample costs are given: row 0 the base, row i candidate i."""
+
+    def __init__(self, table: np.ndarray):
+        self.table = table
+
+    def base_refit(self):
+        return np.array([0.0]), float(self.table[0].sum())
+
+    def sample_costs(self, ps):
+        return self.table[[int(p[0]) for p in ps]]
+
+
+def _candidate(i: int, key: str, table: np.ndarray, n_eff: float) -> CandidateScore:
+    return CandidateScore(key=key, effect=key.split(":")[0], component=key.split(":")[1],
+                          stage="free_tie_rods", tests=[], free=[], k_effect=1,
+                          cost_base=float(table[0].sum()), cost=float(table[i].sum()),
+                          n_eff=n_eff, aic_delta=-500.0, params=np.array([float(i)]))
+
+
+def test_bootstrap_confidence_drops_when_one_stretch_carries_the_winner():
+    """Issue #30: a winner whose gain comes from one short stretch of the data (a few
+    reversals a wrong effect happens to fit) is not named with confidence 1; one whose
+    gain is spread over the whole stage is."""
+    rng = np.random.default_rng(0)
+    n = 4000
+    base = 1.0 + 0.1 * rng.standard_normal(n) ** 2
+    base[:120] = 40.0  # one stretch of large misfit (a few reversals): half the cost
+    spread = base * 0.7  # removes 30 % everywhere
+    lumped = base.copy()
+    lumped[:120] *= 0.4  # removes 60 % of that stretch only: 33 % in total
+    table = np.stack([base, lumped, spread])
+    cands = [_candidate(1, "backlash:worm_gear", table, 400.0),
+             _candidate(2, "stribeck_friction:rack", table, 400.0)]
+    assert cands[0].relative_gain > cands[1].relative_gain  # the lumped one wins on the sum
+    weak = acceptance.ranking_bootstrap(_TableScorer(table), cands[0], cands, 0.1)
+    assert weak["confidence"] < 0.7, weak
+    strong = acceptance.ranking_bootstrap(_TableScorer(table), cands[1], cands[1:], 0.1)
+    assert strong["confidence"] == 1.0, strong
+    # determinism: the same seed gives the same answer
+    assert acceptance.ranking_bootstrap(_TableScorer(table), cands[0], cands, 0.1) == weak
