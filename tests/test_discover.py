@@ -670,8 +670,11 @@ def test_issue_34_effects_are_named_on_a_drawn_rig(tmp_path_factory, planted):
 class _TableScorer:
     """A stage whose per-sample costs are given: row 0 the base, row i candidate i."""
 
-    def __init__(self, table: np.ndarray):
-        self.table = table
+    def __init__(self, table: np.ndarray, noise_cost: float):
+        self.table, self._noise_cost = table, noise_cost
+
+    def noise_cost(self) -> float:
+        return self._noise_cost
 
     def base_refit(self):
         return np.array([0.0]), float(self.table[0].sum())
@@ -702,9 +705,15 @@ def test_bootstrap_confidence_drops_when_one_stretch_carries_the_winner():
     cands = [_candidate(1, "backlash:worm_gear", table, 400.0),
              _candidate(2, "stribeck_friction:rack", table, 400.0)]
     assert cands[0].relative_gain > cands[1].relative_gain  # the lumped one wins on the sum
-    weak = acceptance.ranking_bootstrap(_TableScorer(table), cands[0], cands, 0.1)
-    assert weak["confidence"] < 0.7, weak
-    strong = acceptance.ranking_bootstrap(_TableScorer(table), cands[1], cands[1:], 0.1)
+    at_noise = _TableScorer(table, float(spread.sum()))  # what spread leaves is noise
+    weak = acceptance.ranking_bootstrap(at_noise, cands[0], cands, 0.1)
+    assert weak["wins_share"] < 0.7 and weak["confidence"] < 0.7, weak
+    strong = acceptance.ranking_bootstrap(at_noise, cands[1], cands[1:], 0.1)
     assert strong["confidence"] == 1.0, strong
     # determinism: the same seed gives the same answer
-    assert acceptance.ranking_bootstrap(_TableScorer(table), cands[0], cands, 0.1) == weak
+    assert acceptance.ranking_bootstrap(at_noise, cands[0], cands, 0.1) == weak
+    # the same winner where the noise floor lies far below: it explains 30 % of the
+    # structure left, and the confidence says so
+    partly = acceptance.ranking_bootstrap(_TableScorer(table, 0.0), cands[1], cands[1:], 0.1)
+    assert partly["wins_share"] == 1.0
+    assert partly["confidence"] == pytest.approx(0.3, abs=1e-6)

@@ -305,6 +305,14 @@ class StageScorer:
                                else np.full(n, np.inf))
         return np.array([np.concatenate(r) for r in rows])
 
+    def noise_cost(self) -> float:
+        """The cost the stage's sensor noise alone leaves (the noise the preprocessing
+        measured per test and channel, weighted as the fit weighs it)."""
+        prob = self.problem(self.stage_free, self.base)
+        return float(sum(0.5 * (pt.noise.get(ch, 0.0) * prob._weights(pt, ch)) ** 2
+                         * len(pt.time_s[:: prob.decimate])
+                         for pt in self.tests for ch in prob.channels[pt.id]))
+
     def residual_n_eff(self, p: np.ndarray) -> float:
         return effective_samples(self._evaluate(p[None], residuals=True)[1])
 

@@ -182,9 +182,15 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
     if bootstrap and bootstrap.get("confidence") is not None:
         lo, hi = bootstrap["gain_5_95_percent"]
         parts.append(f"block bootstrap: best and above the margin in "
-                     f"{100 * bootstrap['confidence']:.0f} % of {bootstrap['resamples']} "
+                     f"{100 * bootstrap['wins_share']:.0f} % of {bootstrap['resamples']} "
                      f"resamples of the stage's data (gain {100 * lo:.1f}–{100 * hi:.1f} %, "
                      f"5–95 %)")
+        explained = bootstrap["explained_above_noise"]
+        if explained < 0.8:
+            parts.append(f"PARTLY EXPLAINED: it removes {100 * explained:.0f} % of the stage's "
+                         "residual above the sensor-noise floor; the rest is something else "
+                         "(another effect, or one outside the catalogue), and the confidence "
+                         "is shared accordingly")
     if cv.get("folds"):
         parts.append(f"leave-one-test-out: better on {cv['wins']}/{cv['folds']} held-out tests, "
                      f"held-out cost −{100 * cv['held_out_gain']:.1f} %")
