@@ -355,7 +355,8 @@ def test_discover_outputs_carry_the_findings(backlash, tmp_path):
     assert all(not s.clears(result.settings.min_relative_gain, result.settings.min_aic_drop)
                for s in smaller)
     deg = np.degrees(limit.values["width_rad"])
-    assert f"from width_rad = {limit.values['width_rad']:.3g} ({deg:.2f}°)" in report
+    bound = "at or below" if limit is rp.sizes[0] else "from"
+    assert f"{bound} width_rad = {limit.values['width_rad']:.3g} ({deg:.2f}°)" in report
     assert set(sizes.detection_limit_multiple.dropna()) >= {limit.multiple}
     for fig in ("reversal_zoom.png", "structure_test.png", "comparison.png", "hysteresis.png",
                 "resolution.png"):

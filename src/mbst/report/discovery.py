@@ -226,10 +226,12 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
         if limit is None:
             where = "**not resolved** up to " + size_text(r.sizes[-1], r.size_parameters)
         else:
-            smallest = " (the smallest tried)" if limit is r.sizes[0] else ""
-            where = f"from {size_text(limit, r.size_parameters)}{smallest}, " + (
+            # resolved already at the smallest size tried: the limit lies at or below it
+            bound = "at or below" if limit is r.sizes[0] else "from"
+            where = f"{bound} {size_text(limit, r.size_parameters)}, " + (
                 "below the realistic size" if limit.multiple < 1 else
-                "the realistic size" if limit.multiple == 1 else f"{limit.multiple:g}× it")
+                "the realistic size" if limit.multiple == 1 else
+                f"{limit.multiple:g}× the realistic size")
         lines.append(f"| {r.effect} | {r.component} | {r.stage} | {100 * one.share:.1f} % | "
                      f"{one.aic_delta:.0f} | {where} |")
     return lines

@@ -110,7 +110,8 @@ def resolution_bars(result, path: Path) -> bool:
     ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
                zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
     ax.set_yticks(y, [f"{r.key} ({r.stage})" + (
-        f" — from {r.resolved_from:g}×" if r.resolved_from else
+        (f" — from ≤ {r.resolved_from:g}×" if r.resolved_from == r.sizes[0].multiple else
+         f" — from {r.resolved_from:g}×") if r.resolved_from else
         f" — not resolved ({100 * r.sizes[-1].share:.0f} %, ΔAIC {r.sizes[-1].aic_delta:.0f}"
         f" at {r.sizes[-1].multiple:g}×)")
         for r in res], fontsize=7)
@@ -118,7 +119,8 @@ def resolution_bars(result, path: Path) -> bool:
                label=f"acceptance margin (and ΔAIC ≤ −{result.settings.min_aic_drop:g})")
     ax.set_xlim(0, 100)
     ax.set_xlabel("predicted share of its stage's residual cost removed [%]", fontsize=8)
-    ax.set_title("What these tests can resolve, bar: at the realistic size\ngreen: resolved "
+    ax.set_title("What these tests can resolve, bar: at the realistic size; 'from k×': the "
+                 "smallest size resolved (detection limit)\ngreen: resolved "
                  f"there · orange: only larger · gray: not up to {most:g}× or the bound",
                  fontsize=8)
     ax.grid(axis="x", alpha=0.3)
