@@ -16,9 +16,10 @@ from mbst.discovery.evidence.sindy import (
     _filter_tau,
     residual_regression,
 )
-from mbst.discovery.evidence.terms import dahl, in_gap, play
+from mbst.core.operators import dahl, in_gap, play
 from mbst.identify.cascade import IdentifySettings, identify
 from mbst.io.campaign import read_campaign
+from mbst.systems.eps.library import EpsCandidateLibrary as LIBRARY
 
 TORQUE = "steering_torque_nm"
 
@@ -42,12 +43,12 @@ def backlash(demo_backlash_bench) -> list[TestResidual]:
 
 @pytest.fixture(scope="module")
 def ev_clean(clean):
-    return residual_regression(clean)
+    return residual_regression(clean, LIBRARY)
 
 
 @pytest.fixture(scope="module")
 def ev_backlash(backlash):
-    return residual_regression(backlash)
+    return residual_regression(backlash, LIBRARY)
 
 
 def _report(name, ev) -> None:
@@ -151,7 +152,7 @@ def test_planted_stribeck_term_is_recovered(clean):
         extra = 0.4 * np.tanh(v / 2e-5) * np.exp(-((v / 1e-3) ** 2))
         t.measured[TORQUE] = t.measured[TORQUE] + exponential_filter(extra, t.dt_s, 0.005)
         planted.append(t)
-    ev = residual_regression(planted)
+    ev = residual_regression(planted, LIBRARY)
     _report("planted stribeck:rack", ev)
     # the rack and the motor move as one (no backlash): their Stribeck terms tie in torque
     assert ev.ranking[0][0] in ("stribeck_friction:rack", "stribeck_friction:motor")
@@ -167,25 +168,25 @@ def test_pure_noise_residual_selects_nothing(clean):
         t.measured = {k: t.simulated[k] + exponential_filter(
             0.02 * rng.standard_normal(len(t.time_s)), t.dt_s, 0.005) for k in t.measured}
         noisy.append(t)
-    ev = residual_regression(noisy)
+    ev = residual_regression(noisy, LIBRARY)
     assert ev.variance_explained < 0.03
     assert ev.nuisance_variance_explained < 0.05
 
 
 def test_control_tests_are_never_used(backlash, ev_backlash):
     assert any(t.role == "control" for t in backlash)
-    ev = residual_regression(_garbled_controls(backlash))
+    ev = residual_regression(_garbled_controls(backlash), LIBRARY)
     assert ev.to_dict() == ev_backlash.to_dict()
     assert not any("ctrl" in tid for tid in ev.test_ids)
 
 
 def test_residual_regression_is_deterministic(clean, ev_clean):
-    assert residual_regression(clean).to_dict() == ev_clean.to_dict()
+    assert residual_regression(clean, LIBRARY).to_dict() == ev_clean.to_dict()
 
 
 def test_stlsq_optimizer_agrees_on_clean_vs_backlash(clean, backlash):
-    c = residual_regression(clean, optimizer="stlsq")
-    b = residual_regression(backlash, optimizer="stlsq")
+    c = residual_regression(clean, LIBRARY, optimizer="stlsq")
+    b = residual_regression(backlash, LIBRARY, optimizer="stlsq")
     _report("stlsq backlash", b)
     assert b.variance_explained > 3 * c.variance_explained
     assert b.ranking[0][0].startswith("backlash:")

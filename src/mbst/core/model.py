@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from mbst.core.candidates import LibraryFactory
+
 
 @dataclass(frozen=True)
 class ParamSpec:
@@ -117,8 +119,11 @@ class ModelDefinition:
         ``(x channel or "input", y channel, x label, y label, x scale)`` of the
         loop plot engineers read (steering angle vs torque for EPS).
     evidence_methods
-        Which regressions run beside the structure test (``sparse``, ``neural``):
-        their libraries are built from this family's internal states.
+        Which regressions run beside the structure test (``sparse``, ``neural``).
+    candidate_library
+        The family's one candidate library (``core.candidates``), built from its
+        internal states: the sparse regression ranks the catalogue with it and the
+        neural residual is read back with it. A family without one runs neither.
     discovery_rounds
         The discovery rounds this family runs, in order (``discovery.pipeline.ROUNDS``):
         ``structure`` (the catalogue's output-error test), ``stick_slip`` (the
@@ -186,7 +191,8 @@ class ModelDefinition:
     search_lower: dict[str, float] = field(default_factory=dict)
     component_scenarios: dict[str, tuple[str, ...]] = field(default_factory=dict)
     hysteresis: tuple[str, str, str, str, float] | None = None
-    evidence_methods: tuple[str, ...] = ("sparse", "neural")
+    evidence_methods: tuple[str, ...] = ()
+    candidate_library: LibraryFactory | None = None
     discovery_rounds: tuple[str, ...] = ("structure", "resolution")
     benchmark: Callable[..., dict] | None = None
     stages_of: Callable[[Any], tuple[str, ...]] = lambda pt: (pt.scenario,)
@@ -204,6 +210,9 @@ class ModelDefinition:
     def __post_init__(self) -> None:
         self.param_index = {s.name: i for i, s in enumerate(self.param_specs)}
         self.effects = {e.key: e for e in self.catalogue}
+        if self.evidence_methods and self.candidate_library is None:
+            raise ValueError(f"family '{self.name}' declares evidence methods "
+                             f"{self.evidence_methods} but no candidate_library to read them with")
 
     @property
     def n_params(self) -> int:

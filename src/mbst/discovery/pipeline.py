@@ -124,7 +124,8 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     pool = neural_job = None
     if settings.wants(base.model, "neural"):
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mbst-neural")
-        neural_job = pool.submit(neural_evidence, id_res, settings)
+        neural_job = pool.submit(neural_evidence, id_res, settings,
+                                 base.model.candidate_library)
     try:
         for name in base.model.discovery_rounds:
             if settings.wants(base.model, name):
@@ -142,7 +143,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
     sparse_ev = neural_ev = neural_model = None
     if settings.wants(model, "sparse"):
         t0 = time.perf_counter()
-        sparse_ev = sparse_evidence(state.residuals)
+        sparse_ev = sparse_evidence(state.residuals, model.candidate_library)
         timings["sparse_s"] = time.perf_counter() - t0
     if neural_job is not None:
         t0 = time.perf_counter()

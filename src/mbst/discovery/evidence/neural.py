@@ -35,8 +35,9 @@ residual energy (the gap lives at a few reversals).
 
 ``explain`` reads the trained model back into the language of the effect
 catalogue: how strongly the learned correction depends on each base-model
-signal, and a sparse regression (pysindy STLSQ) of the correction on a library
-of physically named candidate terms, each tagged with a catalogue key.
+signal, and a sparse regression (pysindy STLSQ) of the correction on the family's
+candidate library (``core.candidates``; the one the sparse regression uses), each
+term tagged with a catalogue key.
 """
 
 from __future__ import annotations
@@ -51,10 +52,9 @@ import torch
 from torch import nn
 from torchdiffeq import odeint
 
+from mbst.core.candidates import Candidate, LibraryFactory
 from mbst.core.filtering import exponential_filter
 from mbst.discovery.data import TestResidual
-from mbst.discovery.evidence.terms import dahl, in_gap
-from mbst.systems.eps.params import PARAM_INDEX, PARAM_SPECS, friction_param
 
 # Latent dynamics time scale: a 14 Hz ringing has rate 88 1/s, i.e. ~1.8 in these units.
 TIME_SCALE_S = 0.02
@@ -66,8 +66,6 @@ WASHOUT_FRACTION = 0.25
 ENERGY_MIX = 0.5
 # explain(): library terms correlated above this are treated as one (aliases).
 ALIAS_CORRELATION = 0.95
-# explain(): gap widths (column side) of the backlash candidate terms; catalogue default 0.035.
-BACKLASH_WIDTHS_RAD = (0.01, 0.02, 0.04, 0.08)
 # explain(): rows of the sparse regression are taken at about this rate (after the low-pass).
 REGRESSION_RATE_HZ = 100.0
 # explain(): low-pass time constant applied to the correction and the library alike.
@@ -494,80 +492,6 @@ class NeuralResidual:
 
 
 # ---------------------------------------------------------------------------------- explain
-def _typical(name: str, how: str = "default") -> float:
-    spec = PARAM_SPECS[PARAM_INDEX[name]]
-    if how == "centre":  # log-centre of the bounds (effects whose default is "off")
-        return float(np.sqrt(spec.lower * spec.upper))
-    return float(spec.default)
-
-
-def _library(test: TestResidual) -> list[tuple[str, str, np.ndarray]]:
-    """Candidate terms (name, catalogue key, raw signal) for one test.
-
-    Keys ``nominal:<component>`` tag terms the base model already has (Coulomb
-    level, viscous, stiffness): a correction made of them means mis-identified
-    base parameters rather than missing physics.
-    """
-    sig = _signals(test)
-    n = len(test.time_s)
-    zero = np.zeros(n)
-    dt = test.dt_s
-    comps = {
-        "steering_column": (sig.get("angle_rad", zero), sig.get("omega_rad_per_s", zero)),
-        "motor": (sig.get("motor_angle_rad", zero), sig.get("motor_speed_rad_per_s", zero)),
-        "rack": (sig.get("rack_position_m", zero), sig.get("rack_speed_m_per_s", zero)),
-    }
-    xw = sig.get("wheel_position_m", zero)
-    comps["tires"] = (xw, np.gradient(xw, dt))
-    torque = sig.get("torsion_bar_torque_nm", zero)
-    terms: list[tuple[str, str, np.ndarray]] = []
-    for comp, (x, v) in comps.items():
-        veps = _typical(friction_param(comp, "regularisation_velocity"))
-        vs = _typical(friction_param(comp, "stribeck_friction.stribeck_velocity"))
-        fc = _typical(friction_param(comp, "coulomb"))
-        sigma = _typical(friction_param(comp, "presliding_hysteresis.stiffness"), "centre")
-        sgn = np.tanh(v / veps)
-        terms += [
-            (f"tanh(v_{comp}/v_eps)", f"nominal:{comp}", sgn),
-            (f"v_{comp}", f"nominal:{comp}", v),
-            (f"|tanh(v_{comp}/v_eps)|", f"asymmetric_friction:{comp}", np.abs(sgn)),
-        ]
-        for mult in (1.0, 4.0):
-            terms.append((f"exp(-(v_{comp}/{mult:g}v_s)^2)·sign(v)",
-                          f"stribeck_friction:{comp}", np.exp(-(v / (mult * vs)) ** 2) * sgn))
-        terms.append((f"dahl(x_{comp}) - tanh(v/v_eps)", f"presliding_hysteresis:{comp}",
-                      dahl(x, fc / sigma) - sgn))
-        if comp in ("rack", "steering_column"):
-            terms.append((f"|T_tb|·sign(v_{comp})", f"load_dependent_friction:{comp}",
-                          np.abs(torque) * sgn))
-    phi = sig.get("worm_gear_mesh_angle_rad", zero)
-    terms.append(("phi_mesh", "nominal:worm_gear", phi))
-    terms.append(("T_tb", "nominal:torsion_bar", torque))
-    # The base model's mesh angle is small (stiff mesh, no gap): dead-zone widths are set
-    # relative to its range in the test (w = 0.5, 1, 1.5 × the 99th percentile of |phi|).
-    amp = float(np.percentile(np.abs(phi), 99))
-    for frac in (0.5, 1.0, 1.5):
-        w = frac * amp
-        terms.append((f"deadzone(phi_mesh, w={frac:g}·p99|phi|)", "backlash:worm_gear",
-                      phi - np.clip(phi, -w / 2, w / 2)))
-    # A real gap is far wider than the base model's mesh deflection, so the dead zone of the
-    # base phi cannot show it. What a gap of width w does to the column: after each reversal
-    # the pinion travels w with the motor side standing still (its friction and inertia are
-    # not felt). gap_w = sign(v_p) while the pinion crosses the gap, 0 once it is closed.
-    theta_p = sig.get("pinion_angle_rad", zero)
-    v_p = np.gradient(theta_p, dt)
-    for w in BACKLASH_WIDTHS_RAD:
-        terms.append((f"gap(theta_p, w={w:g} rad)·sign(v_p)", "backlash:worm_gear",
-                      in_gap(theta_p, w) * np.tanh(v_p / 2e-3)))
-    # relative tie-rod velocity: dry friction in the ball joints (absent from the base model)
-    dv = comps["rack"][1] - comps["tires"][1]
-    if np.any(sig.get("tie_rod_force_total_n", zero)):
-        terms.append(("tanh(v_tie_rods/v_eps)", "coulomb_friction:tie_rods",
-                      np.tanh(dv / _typical(friction_param("rack", "regularisation_velocity")))))
-    # filtered like the channels the correction was trained on (the campaign's τ)
-    return [(nm, key, exponential_filter(x, dt, test.tau_s)) for nm, key, x in terms]
-
-
 def _correlation_ratio(x: np.ndarray, y: np.ndarray, bins: int = 20) -> float:
     """η: share of std(y) explained by the binned conditional mean E[y | x] (quantile bins)."""
     if np.std(x) == 0 or np.std(y) == 0:
@@ -595,7 +519,7 @@ def _state_dependence(tests: list[TestResidual], corr: np.ndarray) -> dict[str, 
     return dict(sorted(dep.items(), key=lambda kv: -kv[1]))
 
 
-def explain(model: NeuralResidual, tests: list[TestResidual],
+def explain(model: NeuralResidual, tests: list[TestResidual], library: LibraryFactory,
             channel: str = "steering_torque_nm", threshold: float = 0.05,
             smooth_s: float = SMOOTH_S) -> dict:
     """Read what the neural residual learned on ``channel``.
@@ -606,6 +530,9 @@ def explain(model: NeuralResidual, tests: list[TestResidual],
         A trained model.
     tests : list[TestResidual]
         Tests to read the correction on (those without ``channel`` are skipped).
+    library : LibraryFactory
+        The family's candidate library (``ModelDefinition.candidate_library``), the
+        same terms the sparse regression ranks the catalogue with.
     channel : str
         Output channel to explain.
     threshold : float
@@ -622,38 +549,29 @@ def explain(model: NeuralResidual, tests: list[TestResidual],
         against each base-model signal (binned conditional mean, 0…1), sorted
         high to low. ``terms``: [(term, catalogue key, coefficient)] kept by the
         sparse regression, largest standardised effect first, coefficient in the
-        channel's unit per unit of the (filtered) term; ``nominal:<component>``
+        channel's unit per unit of the (filtered) term; ``base:<component>``
         keys tag terms the base model already has (a mis-identified level, not a
         missing effect). ``ranking``: [(catalogue key, share)], share = std of the
         key's part of the sparse fit over the sum of those of all catalogue keys
         (summing to 1), largest first. ``nominal_share``: the part of the fit (same
-        measure) carried by the ``nominal:`` terms instead.
+        measure) carried by the ``base:`` terms instead.
         ``variance_explained``: R² of the sparse fit of the (low-passed)
         correction. ``residual_explained``: 1 − ‖r − c‖²/‖r‖² of the correction c
         against the measured residual r; near 0, the reading describes noise the
         network followed rather than an effect. ``aliases``: {kept term: [terms
         dropped as near-duplicates of it]}; a kept term speaks for its aliases too.
-
-    Notes
-    -----
-    The base model's mesh angle never opens a gap, so the dead zone of that angle
-    (the textbook backlash term) is degenerate; the library also holds gap-
-    traversal terms (``gap(theta_p, w)·sign(v_p)``: the pinion crossing a gap of
-    width w after each reversal with the motor side standing still), which is the
-    shape a worm-gear backlash leaves in the column torque with a passive motor.
     """
-    import pysindy as ps
-
     used = [t for t in tests if channel in t.measured]
     if not used:
         raise ValueError(f"no test carries channel '{channel}'")
     corrections = [c[channel] for c in model.corrections(used)]
     corr = np.concatenate(corrections)
     resid = np.concatenate([t.residual(channel) for t in used])
-    dependence = _state_dependence(used, corr)
     # how much of the measured residual the correction accounts for: near 0, the rest of
     # this reading describes noise the model followed, not an effect
-    explained = float(1.0 - np.sum((resid - corr) ** 2) / max(np.sum(resid**2), 1e-300))
+    base = {"state_dependence": _state_dependence(used, corr),
+            "residual_explained": float(1.0 - np.sum((resid - corr) ** 2)
+                                        / max(np.sum(resid**2), 1e-300))}
     # The correction rings after reversals (a mesh mode the latent ODE reproduces); static
     # library terms cannot ring. The same low-pass on both sides of the regression keeps the
     # shelf / hysteresis shape the catalogue effects differ by and averages the ringing out.
@@ -661,62 +579,82 @@ def explain(model: NeuralResidual, tests: list[TestResidual],
     step = [max(1, int(round(1.0 / (REGRESSION_RATE_HZ * t.dt_s)))) for t in used]
     y_reg = np.concatenate([exponential_filter(c, t.dt_s, smooth_s)[::k]
                             for c, t, k in zip(corrections, used, step)])
-    base = {"state_dependence": dependence, "residual_explained": explained}
-    libs = [{nm: (key, exponential_filter(x, t.dt_s, smooth_s)[::k])
-             for nm, key, x in _library(t)} for t, k in zip(used, step)]
-    keys: dict[str, str] = {}
-    for lib in libs:
-        for nm, (key, _) in lib.items():
-            keys.setdefault(nm, key)
-    term_names = list(keys)
-    theta = np.stack([np.concatenate([lib[nm][1] if nm in lib else np.zeros(len(t.time_s[::k]))
-                                      for lib, t, k in zip(libs, used, step)])
-                      for nm in term_names], axis=1)
+    theta, cands = _term_matrix(used, library, step, smooth_s)
     std = theta.std(axis=0)
     xs = (theta - theta.mean(axis=0)) / np.where(std > 0, std, 1.0)
-    gram = np.abs(xs.T @ xs) / len(xs)  # |correlation| between terms
-    # Near-duplicate terms (motor and rack speed are proportional through a stiff mesh, so
-    # their signs coincide) make least squares split a term into large opposite coefficients.
-    # Keep the first of every group with |r| > ALIAS_CORRELATION and report the rest as aliases.
-    kept: list[int] = []
-    aliases: dict[str, list[str]] = {}
-    for j in range(len(term_names)):
-        if std[j] <= 0:
-            continue
-        if kept and gram[j, kept].max() > ALIAS_CORRELATION:
-            first = kept[int(np.argmax(gram[j, kept]))]
-            aliases.setdefault(term_names[first], []).append(term_names[j])
-            continue
-        kept.append(j)
+    kept, aliases = _prune_aliases(xs, std, [c.name for c in cands])
     y_std = float(np.std(y_reg))
     if y_std == 0.0 or not kept:
         return {**base, "terms": [], "ranking": [], "nominal_share": 0.0,
                 "variance_explained": 0.0, "aliases": aliases}
-    xs, std, names_k = xs[:, kept], std[kept], [term_names[j] for j in kept]
+    xs, std, cands = xs[:, kept], std[kept], [cands[j] for j in kept]
     ys = (y_reg - y_reg.mean()) / y_std
+    beta = _stlsq(xs, ys, threshold)
+    order = np.argsort(-np.abs(beta), kind="stable")
+    terms = [(cands[j].name, cands[j].key, float(beta[j] * y_std / std[j]))
+             for j in order if beta[j] != 0.0]
+    return {**base, "terms": terms, **_key_shares(xs, beta, cands, order),
+            "variance_explained": float(1.0 - np.sum((ys - xs @ beta) ** 2) / np.sum(ys**2)),
+            "aliases": aliases}
+
+
+def _term_matrix(used: list[TestResidual], library: LibraryFactory, step: list[int],
+                 smooth_s: float) -> tuple[np.ndarray, list[Candidate]]:
+    """The library's terms of every test, filtered like the channels the correction was
+    trained on (the campaign's τ), then low-passed and decimated like the correction."""
+    lib = library(used)
+    rows = [exponential_filter(exponential_filter(lib.transform(t), t.dt_s, t.tau_s),
+                               t.dt_s, smooth_s)[::k] for t, k in zip(used, step)]
+    return np.vstack(rows), list(lib.candidates)
+
+
+def _prune_aliases(xs: np.ndarray, std: np.ndarray,
+                   names: list[str]) -> tuple[list[int], dict[str, list[str]]]:
+    """Near-duplicate terms (motor and rack speed are proportional through a stiff mesh,
+    so their signs coincide) make least squares split a term into large opposite
+    coefficients. Keep the first of every group with |r| > ALIAS_CORRELATION and report
+    the rest as its aliases."""
+    gram = np.abs(xs.T @ xs) / len(xs)  # |correlation| between terms
+    kept: list[int] = []
+    aliases: dict[str, list[str]] = {}
+    for j in range(len(names)):
+        if std[j] <= 0:
+            continue
+        if kept and gram[j, kept].max() > ALIAS_CORRELATION:
+            first = kept[int(np.argmax(gram[j, kept]))]
+            aliases.setdefault(names[first], []).append(names[j])
+            continue
+        kept.append(j)
+    return kept, aliases
+
+
+def _stlsq(xs: np.ndarray, ys: np.ndarray, threshold: float) -> np.ndarray:
+    import pysindy as ps
+
     # ridge scaled with the sample count: a mild tie-breaker, not a shrinkage of real terms
     opt = ps.STLSQ(threshold=threshold, alpha=1e-3 * len(ys), max_iter=30)
     opt.fit(xs, ys)
-    beta = np.asarray(opt.coef_, dtype=float).reshape(-1)
-    r2 = float(1.0 - np.sum((ys - xs @ beta) ** 2) / np.sum(ys**2))
-    order = np.argsort(-np.abs(beta), kind="stable")
-    terms = [(names_k[j], keys[names_k[j]], float(beta[j] * y_std / std[j]))
-             for j in order if beta[j] != 0.0]
-    # A key's weight is the std of its own part of the fit, Σ_j∈key β_j·x_j: a key with many
-    # candidate terms (several gap widths) gains nothing from their number or their cancelling.
+    return np.asarray(opt.coef_, dtype=float).reshape(-1)
+
+
+def _key_shares(xs: np.ndarray, beta: np.ndarray, cands: list[Candidate],
+                order: np.ndarray) -> dict:
+    """``ranking`` and ``nominal_share`` of ``explain``.
+
+    A key's weight is the std of its own part of the fit, Σ_j∈key β_j·x_j: a key with
+    many candidate terms (several gap widths) gains nothing from their number or their
+    cancelling. The ranking answers "which catalogue effect": terms the base model
+    already has are reported as one share next to it, not ranked among the effects.
+    """
     weight: dict[str, float] = {}
-    for key in dict.fromkeys(keys[names_k[j]] for j in order if beta[j] != 0.0):
-        idx = [j for j in range(len(names_k)) if keys[names_k[j]] == key and beta[j] != 0.0]
+    for key in dict.fromkeys(cands[j].key for j in order if beta[j] != 0.0):
+        idx = [j for j in range(len(cands)) if cands[j].key == key and beta[j] != 0.0]
         weight[key] = float(np.std(xs[:, idx] @ beta[idx]))
-    # the ranking answers "which catalogue effect": terms the base model already has are
-    # reported as one share next to it, not ranked among the effects
     total = sum(weight.values())
-    effects = {k: w for k, w in weight.items() if not k.startswith("nominal:")}
+    effects = {k: w for k, w in weight.items() if not k.startswith("base:")}
     total_eff = sum(effects.values())
     ranking = [(k, w / total_eff) for k, w in sorted(effects.items(), key=lambda kv: -kv[1])]
-    nominal = 1.0 - total_eff / total if total > 0 else 0.0
-    return {**base, "terms": terms, "ranking": ranking, "nominal_share": nominal,
-            "variance_explained": r2, "aliases": aliases}
+    return {"ranking": ranking, "nominal_share": 1.0 - total_eff / total if total > 0 else 0.0}
 
 
 # ---------------------------------------------------------------------------------- plot
@@ -758,8 +696,6 @@ def plot_learned(model: NeuralResidual, tests: Sequence[TestResidual], path,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mbst.core.metrics import fit_percent
-
     used = [t for t in tests if channel in t.measured]
     if not used:
         raise ValueError(f"no test carries channel '{channel}'")
@@ -772,28 +708,7 @@ def plot_learned(model: NeuralResidual, tests: Sequence[TestResidual], path,
     grid = fig.add_gridspec(len(shown) + 1, 3, height_ratios=[1.0] * len(shown) + [1.4])
     corrections = {t.id: c[channel] for t, c in zip(used, model.corrections(used))}
     for row, t in enumerate(shown):
-        r = t.residual(channel) * k
-        c = corrections[t.id] * k
-        fit_b = fit_percent(t.measured[channel], t.simulated[channel])
-        fit_n = fit_percent(t.measured[channel], t.simulated[channel] + corrections[t.id])
-        peak = int(np.argmax(np.abs(t.residual(channel))))
-        lo = max(t.time_s[0], t.time_s[peak] - 0.15)
-        zoom = (t.time_s >= lo) & (t.time_s <= lo + 0.5)
-        for ax, m in ((fig.add_subplot(grid[row, :2]), slice(None)),
-                      (fig.add_subplot(grid[row, 2]), zoom)):
-            ax.plot(t.time_s[m], r[m], color="0.35", lw=1.0, label="measured residual")
-            ax.plot(t.time_s[m], c[m], color="tab:orange", lw=1.3, label="learned correction")
-            ax.plot(t.time_s[m], (r - c)[m], color="tab:green", lw=0.7, alpha=0.8,
-                    label="remaining after correction")
-            ax.axhline(0.0, color="0.8", lw=0.6, zorder=0)
-            ax.set_xlabel("time [s]")
-            ax.set_ylabel(f"{channel} residual [{unit}]", fontsize=8)
-            ax.grid(alpha=0.3)
-        ax.set_title("zoom on the largest residual", fontsize=9)
-        fig.axes[-2].set_title(f"{t.id}  ({t.scenario}, {t.role})   FIT base {fit_b:.1f} % → "
-                               f"physics+neural {fit_n:.1f} %", fontsize=10, loc="left")
-        if row == 0:
-            fig.axes[-2].legend(loc="upper right", fontsize=8, ncol=3)
+        _residual_row(fig, grid, row, t, channel, corrections[t.id])
     dep = _state_dependence(used, np.concatenate([corrections[t.id] for t in used]))
     top = next(iter(dep))
     s_unit, s_k = _unit(top)
@@ -814,3 +729,34 @@ def plot_learned(model: NeuralResidual, tests: Sequence[TestResidual], path,
                  f"residual (measured − base model)", fontsize=12)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _residual_row(fig, grid, row: int, t: TestResidual, channel: str,
+                  correction: np.ndarray) -> None:
+    """One test of ``plot_learned``: residual, learned correction and what remains, over
+    the whole test and zoomed on the largest residual event."""
+    from mbst.core.metrics import fit_percent
+
+    unit, k = _unit(channel)
+    r = t.residual(channel) * k
+    c = correction * k
+    fit_b = fit_percent(t.measured[channel], t.simulated[channel])
+    fit_n = fit_percent(t.measured[channel], t.simulated[channel] + correction)
+    peak = int(np.argmax(np.abs(t.residual(channel))))
+    lo = max(t.time_s[0], t.time_s[peak] - 0.15)
+    zoom = (t.time_s >= lo) & (t.time_s <= lo + 0.5)
+    for ax, m in ((fig.add_subplot(grid[row, :2]), slice(None)),
+                  (fig.add_subplot(grid[row, 2]), zoom)):
+        ax.plot(t.time_s[m], r[m], color="0.35", lw=1.0, label="measured residual")
+        ax.plot(t.time_s[m], c[m], color="tab:orange", lw=1.3, label="learned correction")
+        ax.plot(t.time_s[m], (r - c)[m], color="tab:green", lw=0.7, alpha=0.8,
+                label="remaining after correction")
+        ax.axhline(0.0, color="0.8", lw=0.6, zorder=0)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(f"{channel} residual [{unit}]", fontsize=8)
+        ax.grid(alpha=0.3)
+    ax.set_title("zoom on the largest residual", fontsize=9)
+    fig.axes[-2].set_title(f"{t.id}  ({t.scenario}, {t.role})   FIT base {fit_b:.1f} % → "
+                           f"physics+neural {fit_n:.1f} %", fontsize=10, loc="left")
+    if row == 0:
+        fig.axes[-2].legend(loc="upper right", fontsize=8, ncol=3)

@@ -6,7 +6,8 @@ Two things live here:
     Regresses the base model's output residual (measured − simulated) on a
     physics-informed candidate library built from the base model's *own*
     internal signals. Every candidate stands for one (effect, component)
-    catalogue key (``eps_params.EFFECTS``), so the variance its terms explain
+    catalogue key (the family's library, ``ModelDefinition.candidate_library``;
+    for the EPS rig ``systems/eps/library.py``), so the variance its terms explain
     ranks the catalogue. The re-tuning the base model itself could do
     (Coulomb/viscous per friction element, stiffness misfits, the offset) is
     projected out first as a nuisance block: what is left is what the base
@@ -39,16 +40,9 @@ import numpy as np
 import pysindy as ps
 from scipy.integrate import odeint
 
+from mbst.core.candidates import CandidateLibrary, LibraryFactory
 from mbst.core.filtering import exponential_filter
 from mbst.discovery.data import TestResidual
-from mbst.discovery.evidence.terms import dahl, in_gap, play
-from mbst.systems.eps.params import (
-    EFFECTS,
-    FRICTION_ELEMENTS,
-    PARAM_INDEX,
-    PARAM_SPECS,
-    friction_param,
-)
 
 __all__ = [
     "SindyControlModel",
@@ -57,234 +51,6 @@ __all__ = [
     "residual_regression",
 ]
 
-TORQUE = "steering_torque_nm"
-
-# --------------------------------------------------------------------------------------
-# Candidate library
-# --------------------------------------------------------------------------------------
-
-# Grids, relative to the catalogue's typical values (Stribeck velocity, Dahl length F_c/σ).
-_STRIBECK_GRID = (0.25, 0.5, 1.0, 2.0, 4.0)
-_DAHL_GRID = (0.3, 1.0, 3.0, 10.0, 30.0)
-_LAG_TAUS_S = (0.01, 0.03, 0.1)
-_POWER_EXPONENTS = (0.5, 1.5)
-_BACKLASH_WIDTHS_RAD = (0.01, 0.02, 0.035, 0.05, 0.08)
-_DEADZONE_FRACTIONS = (0.5, 1.0, 1.5)  # of the largest base-model mesh angle
-_STOP_FRACTIONS = (0.05, 0.1, 0.2, 0.4, 0.7)  # of the largest torsion-bar torque
-_BUMP_WIDTHS_M = (0.004, 0.01)
-_SOFT_SWITCH = (10,)  # softer friction switches in the nuisance block, × v_eps
-
-
-def _default(name: str) -> float:
-    return PARAM_SPECS[PARAM_INDEX[name]].default
-
-
-def _friction_scales(elem: str) -> tuple[float, float, float]:
-    """(regularisation velocity, typical Stribeck velocity, typical Dahl length F_c/σ)."""
-    veps = _default(friction_param(elem, "regularisation_velocity"))
-    vs_name = friction_param(elem, "stribeck_friction.stribeck_velocity")
-    vs = EFFECTS[f"stribeck_friction:{elem}"].default_size[vs_name]
-    sig_name = friction_param(elem, "presliding_hysteresis.stiffness")
-    sigma = EFFECTS[f"presliding_hysteresis:{elem}"].default_size[sig_name]
-    return veps, vs, _default(friction_param(elem, "coulomb")) / sigma
-
-
-@dataclass(frozen=True)
-class _Candidate:
-    name: str
-    key: str  # catalogue key "effect:component", or "base:<component>" for nuisance
-    sign: int  # physically required coefficient sign (+1/−1), 0 when either is physical
-    fn: Callable[[dict], np.ndarray]
-
-    @property
-    def nuisance(self) -> bool:
-        return self.key.startswith("base:")
-
-
-class _Context(dict):
-    """Per-test signals plus a cache, so grids share their expensive parts (play, Dahl)."""
-
-    def cached(self, tag: tuple, make: Callable[[], np.ndarray]) -> np.ndarray:
-        if tag not in self:
-            self[tag] = make()
-        return self[tag]
-
-
-def _context(t: TestResidual) -> _Context:
-    st = t.states
-    n = len(t.time_s)
-    zero = np.zeros(n)
-    g = lambda k: np.asarray(st.get(k, zero), dtype=np.float64)
-    wheel = g("wheel_position_m")
-    wheel_speed = np.gradient(wheel, t.time_s) if n > 1 else zero
-    tie = g("tie_rod_force_total_n")
-    # tie-rods only slide relative to something when they are connected (they carry force)
-    v_tie = g("rack_speed_m_per_s") - wheel_speed if np.ptp(tie) > 0 else zero
-    c = _Context(
-        v_steering_column=np.asarray(t.omega_rad_per_s, dtype=np.float64),
-        x_steering_column=np.asarray(t.angle_rad, dtype=np.float64),
-        v_motor=g("motor_speed_rad_per_s"),
-        x_motor=g("motor_angle_rad"),
-        v_rack=g("rack_speed_m_per_s"),
-        x_rack=g("rack_position_m"),
-        v_tires=wheel_speed,
-        x_tires=wheel,
-        v_tie_rods=v_tie,
-        phi=g("worm_gear_mesh_angle_rad"),
-        pinion=g("pinion_angle_rad"),
-        ttb=g("torsion_bar_torque_nm"),
-        motor_torque=g("motor_torque_nm"),
-        tie_rod_force=tie,
-        dt=float(t.dt_s),
-    )
-    return c
-
-
-class _Library:
-    """The candidate terms, with grids fixed from the pooled identification tests.
-
-    Grids that depend on the data (mesh-angle dead zones, limit-stop thresholds,
-    rack bump centres, power-law reference speeds) are set once from the pooled
-    tests so every test gets the same columns.
-    """
-
-    def __init__(self, tests: list[TestResidual]):
-        ctxs = [_context(t) for t in tests]
-        pool = lambda k: np.concatenate([c[k] for c in ctxs])
-        self.veps = {e: _friction_scales(e)[0] for e in FRICTION_ELEMENTS}
-        self.veps["tie_rods"] = _default("tie_rods.regularisation_velocity_m_per_s")
-        self.vref = {}
-        for e in (*FRICTION_ELEMENTS, "tie_rods"):
-            v = pool(f"v_{e}")
-            self.vref[e] = float(np.sqrt(np.mean(v**2))) or 1.0
-        self.phi_max = float(np.max(np.abs(pool("phi"))))
-        self.ttb_max = float(np.max(np.abs(pool("ttb"))))
-        xr = pool("x_rack")
-        self.rack_range = (float(xr.min()), float(xr.max()))
-        self.candidates = self._build()
-
-    # -- helpers -----------------------------------------------------------------------
-    def _sgn(self, c: dict, e: str) -> np.ndarray:
-        return c.cached(("tanh", e), lambda: np.tanh(c[f"v_{e}"] / self.veps[e]))
-
-    def _gate(self, c: _Context, w: float) -> np.ndarray:
-        # 1 while the pinion has travelled less than the gap width since its last reversal
-        def make() -> np.ndarray:
-            h = 0.5 * w
-            return in_gap(c["pinion"], 2 * h)
-
-        return c.cached(("gate", w), make)
-
-    def _build(self) -> list[_Candidate]:
-        C: list[_Candidate] = []
-        add = lambda name, key, sign, fn: C.append(_Candidate(name, key, sign, fn))
-        sgn = self._sgn
-
-        # nuisance: what re-tuning the base model's own parameters could absorb
-        for e in FRICTION_ELEMENTS:
-            add(f"tanh(v_{e})", f"base:{e}", 0, lambda c, e=e: sgn(c, e))
-            add(f"v_{e}", f"base:{e}", 0, lambda c, e=e: c[f"v_{e}"] / self.vref[e])
-        # The column speed is the only one derived from the measured (noisy) angle: its
-        # friction sign flips with noise near reversals, where the rig's does not. A softer
-        # switch absorbs that artefact (v_eps is fixed, not identified, so this is re-tuning);
-        # the other speeds are smooth model states and keep their Stribeck range free.
-        for k in _SOFT_SWITCH:
-            add(f"tanh(v_steering_column/{k}veps)", "base:steering_column", 0,
-                lambda c, k=k: np.tanh(c["v_steering_column"]
-                                       / (k * self.veps["steering_column"])))
-        add("T_tb", "base:torsion_bar", 0, lambda c: c["ttb"])
-        add("phi_mesh", "base:worm_gear", 0, lambda c: c["phi"])
-        add("x_rack", "base:rack", 0, lambda c: c["x_rack"])
-        add("x_wheel", "base:tires", 0, lambda c: c["x_tires"])
-        add("F_tie", "base:tie_rods", 0, lambda c: c["tie_rod_force"])
-        add("T_motor", "base:motor", 0, lambda c: c["motor_torque"])
-
-        for e in FRICTION_ELEMENTS:
-            veps, vs0, dahl0 = _friction_scales(e)
-            for f in _STRIBECK_GRID:
-                vs = vs0 * f
-                add(f"stribeck(v_{e}, vs={vs:.3g})", f"stribeck_friction:{e}", +1,
-                    lambda c, e=e, vs=vs: sgn(c, e) * np.exp(-((c[f"v_{e}"] / vs) ** 2)))
-            # Dahl memory: travel-driven state minus the instantaneous tanh it replaces
-            for f in _DAHL_GRID:
-                L = dahl0 * f
-                add(f"dahl(x_{e}, L={L:.3g})-tanh", f"presliding_hysteresis:{e}", +1,
-                    lambda c, e=e, L=L: c.cached(("dahl", e, L), lambda: dahl(c[f"x_{e}"], L))
-                    - sgn(c, e))
-            for tau in _LAG_TAUS_S:
-                add(f"lag(tanh(v_{e}), {tau * 1e3:.0f}ms)-tanh", f"presliding_hysteresis:{e}", +1,
-                    lambda c, e=e, tau=tau: exponential_filter(sgn(c, e), c["dt"], tau) - sgn(c, e))
-            # power law: the linear part is nuisance, so only the curvature is left to explain
-            for a in _POWER_EXPONENTS:
-                add(f"|v_{e}|^{a:g}·sign", f"power_law_damping:{e}", 0,
-                    lambda c, e=e, a=a: np.sign(c[f"v_{e}"])
-                    * np.abs(c[f"v_{e}"] / self.vref[e]) ** a)
-            add(f"max(tanh(v_{e}),0)", f"asymmetric_friction:{e}", 0,
-                lambda c, e=e: np.maximum(sgn(c, e), 0.0))
-
-        for e in ("steering_column", "rack"):
-            add(f"|T_tb|·tanh(v_{e})", f"load_dependent_friction:{e}", +1,
-                lambda c, e=e: np.abs(c["ttb"]) * sgn(c, e))
-
-        lo, hi = self.rack_range
-        for w in _BUMP_WIDTHS_M:
-            if hi - lo <= 0:
-                break
-            for x0 in np.arange(lo - w, hi + w + 1e-12, w / 2):
-                add(f"bump(x_rack, {x0 * 1e3:+.1f}mm, w={w * 1e3:g}mm)·tanh(v_rack)",
-                    "position_dependent_friction:rack", +1,
-                    lambda c, x0=float(x0), w=w: np.exp(-(((c["x_rack"] - x0) / w) ** 2))
-                    * sgn(c, "rack"))
-
-        add("tanh(v_tie_rods)", "coulomb_friction:tie_rods", +1, lambda c: sgn(c, "tie_rods"))
-
-        # worm-gear backlash: a dead zone on the base model's mesh angle, and the mesh
-        # torque / motor friction the real gear does not transmit while the gap is open.
-        # Reversal memory is a play operator on the (smooth, model) pinion angle rather
-        # than the sign of an acceleration, which noise flips at every reversal.
-        for f in _DEADZONE_FRACTIONS:
-            w = 2 * f * self.phi_max
-            if w <= 0:
-                break
-            add(f"deadzone(phi, w={w:.3g})", "backlash:worm_gear", 0,
-                lambda c, w=w: c["phi"] - np.clip(c["phi"], -w / 2, w / 2))
-        for w in _BACKLASH_WIDTHS_RAD:
-            # + : the base model's mesh torque k_g·φ is what the open gap does not carry
-            add(f"gap(pinion, w={w:g})·phi", "backlash:worm_gear", +1,
-                lambda c, w=w: self._gate(c, w) * c["phi"])
-            add(f"gap(pinion, w={w:g})·tanh(v_motor)", "backlash:worm_gear", -1,
-                lambda c, w=w: self._gate(c, w) * sgn(c, "motor"))
-            # rack-pinion backlash: the rack (and its friction) is decoupled in the gap
-            add(f"gap(pinion, w={w:g})·tanh(v_rack)", "backlash:rack_pinion", -1,
-                lambda c, w=w: self._gate(c, w) * sgn(c, "rack"))
-            add(f"pinion-play(pinion, w={w:g})", "backlash:rack_pinion", 0,
-                lambda c, w=w: c["pinion"] - play(c["pinion"], w / 2))
-
-        # torsion-bar limit stop: torque beyond a threshold, in the direction of twist
-        for f in _STOP_FRACTIONS:
-            T0 = f * self.ttb_max
-            add(f"relu(|T_tb|-{T0:.3g})·sign(T_tb)", "stiffness_limit_stop:torsion_bar", +1,
-                lambda c, T0=T0: np.maximum(np.abs(c["ttb"]) - T0, 0.0) * np.sign(c["ttb"]))
-        return C
-
-    def transform(self, t: TestResidual) -> np.ndarray:
-        """Raw (unfiltered, full-rate) candidate matrix of one test, shape (n, n_candidates)."""
-        c = _context(t)
-        # a component that does not move in this test contributes nothing (blocked_column)
-        moving = {e: bool(np.max(np.abs(c[f"v_{e}"]), initial=0.0) > 0.01 * self.veps[e])
-                  for e in self.veps}
-        out = np.zeros((len(t.time_s), len(self.candidates)))
-        for j, cand in enumerate(self.candidates):
-            comp = cand.key.split(":", 1)[1]
-            if comp in moving and not moving[comp]:
-                continue
-            col = np.asarray(cand.fn(c), dtype=np.float64)
-            # drop constant columns per test (a constant is the offset's business)
-            if np.ptp(col) > 0:
-                out[:, j] = col
-        return out
-
-
 def _filter_tau(t: TestResidual, channel: str) -> float:
     """The exponential-filter τ the channels went through, recovered from the twin.
 
@@ -292,7 +58,8 @@ def _filter_tau(t: TestResidual, channel: str) -> float:
     s[n] − s[n−1] = α·(raw[n] + offset − s[n−1]) is an exact linear relation; the
     candidates must see the same filter as the residual they explain.
     """
-    for ch in (channel, TORQUE, "rack_position_m"):
+    others = sorted(set(t.states) & set(t.simulated) - {channel})
+    for ch in (channel, *others):
         raw, sim = t.states.get(ch), t.simulated.get(ch)
         if raw is None or sim is None or len(sim) < 10:
             continue
@@ -477,7 +244,7 @@ def _stlsq_select(Z: np.ndarray, r0: np.ndarray, sst: float, signs: np.ndarray,
                            min(max_terms, int(support.sum())), allowed=support)
 
 
-def _pooled_design(tests: list[TestResidual], channel: str, lib: _Library,
+def _pooled_design(tests: list[TestResidual], channel: str, lib: CandidateLibrary,
                    rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     Xs, ys = [], []
     for t in tests:
@@ -490,18 +257,71 @@ def _pooled_design(tests: list[TestResidual], channel: str, lib: _Library,
     return np.vstack(Xs), np.concatenate(ys)
 
 
-def residual_regression(tests: list[TestResidual], channel: str = TORQUE, *,
-                        min_share: float = 0.01, max_terms: int = 8,
-                        rate_hz: float = 100.0, optimizer: str = "frols") -> SparseEvidence:
-    """Sparse regression of the base model's residual on a physics-informed library.
+@dataclass
+class _Design:
+    """The pooled, centred regression with the nuisance block projected out."""
+
+    Xc: np.ndarray  # centred candidate columns
+    yc: np.ndarray  # centred residual
+    nuis: np.ndarray  # which candidates are nuisance
+    signs: np.ndarray
+    sst: float
+    r0: np.ndarray = None  # residual after the nuisance projection
+    Z: np.ndarray = None  # unit-norm effect columns after the projection
+    eff_idx: np.ndarray = None  # candidate index of each column of Z
+    nuisance_share: float = 0.0
+
+    def project(self) -> None:
+        U = _orthonormal_basis(self.Xc[:, self.nuis])
+        self.r0 = self.yc - U @ (U.T @ self.yc)
+        self.nuisance_share = 1.0 - float(self.r0 @ self.r0) / self.sst
+        E = self.Xc[:, ~self.nuis]
+        Ep = E - U @ (U.T @ E)
+        n0, n1 = np.linalg.norm(E, axis=0), np.linalg.norm(Ep, axis=0)
+        # keep candidates with something left after the nuisance projection
+        keep = (n0 > 0) & (n1 > 1e-6 * np.maximum(n0, 1e-300))
+        self.eff_idx = np.flatnonzero(~self.nuis)[keep]
+        self.Z = Ep[:, keep] / n1[keep]
+
+    def coefficients(self, sel: list[int]) -> np.ndarray:
+        """Coefficients in the candidates' own units: joint OLS with the nuisance block."""
+        if not sel:
+            return np.zeros(0)
+        A = np.column_stack([self.Xc[:, self.nuis], self.Xc[:, sel]])
+        scale = np.linalg.norm(A, axis=0)
+        scale[scale == 0] = 1.0  # columns span 1e-3 (m) to 1e3 (N): solve in unit-norm form
+        beta = np.linalg.lstsq(A / scale, self.yc, rcond=None)[0] / scale
+        return beta[int(self.nuis.sum()):]
+
+    def key_scores(self, keys: list[str], min_share: float) -> dict[str, float]:
+        """Order-free view: what each key's own candidates (≤ 3 terms) explain alone."""
+        eff_keys = np.array([keys[i] for i in self.eff_idx])
+        scores = {}
+        for key in sorted(set(eff_keys.tolist())):
+            _, s = _forward_select(self.Z, self.r0, self.sst, self.signs[self.eff_idx],
+                                   min_share, 3, allowed=eff_keys == key)
+            if s:
+                scores[key] = float(sum(s))
+        return dict(sorted(scores.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def residual_regression(tests: list[TestResidual], library: LibraryFactory,
+                        channel: str | None = None, *, min_share: float = 0.01,
+                        max_terms: int = 8, rate_hz: float = 100.0,
+                        optimizer: str = "frols") -> SparseEvidence:
+    """Sparse regression of the base model's residual on the family's candidate library.
 
     Parameters
     ----------
     tests
         Per-test residual data; only ``role == "identification"`` tests that carry
         ``channel`` are used (control tests never enter the fit).
+    library
+        The family's library, built from the pooled identification tests
+        (``ModelDefinition.candidate_library``).
     channel
-        Measured channel whose residual (measured − simulated) is explained.
+        Measured channel whose residual (measured − simulated) is explained;
+        default: the channel the library's signs are worked out for.
     min_share
         A term joins only if it explains at least this share of the residual
         variance (1 % by default: far above what noise gets by chance with
@@ -514,83 +334,48 @@ def residual_regression(tests: list[TestResidual], channel: str = TORQUE, *,
         ``"frols"`` (sign-constrained forward orthogonal least squares, the
         default) or ``"stlsq"`` (pysindy's STLSQ on unit-norm columns with
         threshold √min_share, wrong-sign terms pruned).
-
-    Returns
-    -------
-    SparseEvidence
-        Selected terms, variance shares and the catalogue ranking.
     """
+    signed = getattr(library, "signed_channel", None)
+    channel = channel or signed
     ident = [t for t in tests if t.role == "identification" and channel in t.measured]
     if not ident:
         raise ValueError(f"no identification test carries channel '{channel}'")
     if optimizer not in ("frols", "stlsq"):
         raise ValueError(f"unknown optimizer '{optimizer}' (frols, stlsq)")
-    lib = _Library(ident)
+    lib = library(ident)
     X, y = _pooled_design(ident, channel, lib, rate_hz)
     good = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
-    X, y = X[good], y[good]
     cands = lib.candidates
-    nuis = np.array([c.nuisance for c in cands])
-    signs = np.array([c.sign for c in cands])
-    if channel != TORQUE:
-        signs[:] = 0  # the physical signs are worked out for the steering torque only
-
+    # the physical signs are worked out for the library's signed channel only
+    signs = np.array([c.sign if channel == lib.signed_channel else 0 for c in cands])
     # centring is the campaign-wide offset: one bias for all tests, never attributed
-    yc = y - y.mean()
-    Xc = X - X.mean(axis=0)
-    sst = float(yc @ yc)
-    rms = float(np.sqrt(sst / max(len(yc), 1)))
-    empty = SparseEvidence(channel, [], 0.0, 0.0, [], {}, rms, len(yc), 0,
-                           [t.id for t in ident], optimizer)
-    if sst <= 0:
+    yc = y[good] - y[good].mean()
+    d = _Design(X[good] - X[good].mean(axis=0), yc, np.array([c.nuisance for c in cands]),
+                signs, float(yc @ yc))
+    ids = [t.id for t in ident]
+    rms = float(np.sqrt(d.sst / max(len(yc), 1)))
+    empty = SparseEvidence(channel, [], 0.0, 0.0, [], {}, rms, len(yc), 0, ids, optimizer)
+    if d.sst <= 0:
         return empty
-
-    U = _orthonormal_basis(Xc[:, nuis])
-    r0 = yc - U @ (U.T @ yc)
-    nuisance_share = 1.0 - float(r0 @ r0) / sst
-    E = Xc[:, ~nuis]
-    Ep = E - U @ (U.T @ E)
-    n0, n1 = np.linalg.norm(E, axis=0), np.linalg.norm(Ep, axis=0)
-    # keep candidates with something left after the nuisance projection
-    keep = (n0 > 0) & (n1 > 1e-6 * np.maximum(n0, 1e-300))
-    eff_idx = np.flatnonzero(~nuis)[keep]
-    Z = Ep[:, keep] / n1[keep]
-    if Z.shape[1] == 0:
-        empty.nuisance_variance_explained = nuisance_share
+    d.project()
+    if d.Z.shape[1] == 0:
+        empty.nuisance_variance_explained = d.nuisance_share
         return empty
-
     select = _forward_select if optimizer == "frols" else _stlsq_select
-    chosen, shares = select(Z, r0, sst, signs[eff_idx], min_share, max_terms)
-
-    # coefficients in the candidates' own units: joint OLS with the nuisance block
-    sel = [int(eff_idx[j]) for j in chosen]
-    coef = np.zeros(len(sel))
-    if sel:
-        A = np.column_stack([Xc[:, nuis], Xc[:, sel]])
-        scale = np.linalg.norm(A, axis=0)
-        scale[scale == 0] = 1.0  # columns span 1e-3 (m) to 1e3 (N): solve in unit-norm form
-        beta = np.linalg.lstsq(A / scale, yc, rcond=None)[0] / scale
-        coef = beta[int(nuis.sum()):]
+    chosen, shares = select(d.Z, d.r0, d.sst, signs[d.eff_idx], min_share, max_terms)
+    sel = [int(d.eff_idx[j]) for j in chosen]
     terms = [SparseTerm(cands[i].name, cands[i].key, float(b), s)
-             for i, b, s in zip(sel, coef, shares, strict=True)]
+             for i, b, s in zip(sel, d.coefficients(sel), shares, strict=True)]
     by_key: dict[str, float] = {}
     for term in terms:
         by_key[term.key] = by_key.get(term.key, 0.0) + term.variance_share
-    ranking = sorted(by_key.items(), key=lambda kv: (-kv[1], kv[0]))
-
-    # order-free view: what each key's own candidates explain on their own
-    eff_keys = np.array([cands[i].key for i in eff_idx])
-    key_scores = {}
-    for key in sorted(set(eff_keys.tolist())):
-        _, s = _forward_select(Z, r0, sst, signs[eff_idx], min_share, 3, allowed=eff_keys == key)
-        if s:
-            key_scores[key] = float(sum(s))
-    key_scores = dict(sorted(key_scores.items(), key=lambda kv: (-kv[1], kv[0])))
     return SparseEvidence(
         channel=channel, terms=terms, variance_explained=float(sum(shares)),
-        nuisance_variance_explained=nuisance_share, ranking=ranking, key_scores=key_scores,
-        residual_rms=rms, n_samples=len(yc), n_candidates=int(Z.shape[1]),
-        test_ids=[t.id for t in ident], optimizer=optimizer,
+        nuisance_variance_explained=d.nuisance_share,
+        ranking=sorted(by_key.items(), key=lambda kv: (-kv[1], kv[0])),
+        key_scores=d.key_scores([c.key for c in cands], min_share),
+        residual_rms=rms, n_samples=len(yc), n_candidates=int(d.Z.shape[1]),
+        test_ids=ids, optimizer=optimizer,
     )
 
 
@@ -683,8 +468,8 @@ class SindyControlModel:
 
     def _fit_scenario(self, tests: list[TestResidual]) -> _ScenarioModel:
         chans = [c for c in tests[0].measured if all(c in t.measured for t in tests)]
-        # one channel and it is the torque: the blocked-column case, an algebraic map of u
-        static = chans if chans == [TORQUE] else []
+        # one channel (the EPS blocked column: the torque): an algebraic map of u
+        static = chans if len(chans) == 1 else []
         dynamic = [c for c in chans if c not in static]
         ks = [max(1, int(round(1.0 / (self.rate_hz * t.dt_s)))) for t in tests]
         w_all = np.concatenate([t.omega_rad_per_s for t in tests])

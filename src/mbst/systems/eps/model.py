@@ -21,6 +21,7 @@ from mbst.systems.eps import boost_curve as eps_boost_curve
 from mbst.systems.eps import kernel as K
 from mbst.systems.eps import simulate as eps
 from mbst.systems.eps.channels import OUTPUT_CHANNELS, SYSTEM_NAME
+from mbst.systems.eps.library import EpsCandidateLibrary
 from mbst.systems.eps.params import EFFECT_CATALOGUE, PARAM_INDEX, PARAM_SPECS
 
 if TYPE_CHECKING:
@@ -566,6 +567,7 @@ EPS_MODEL = ModelDefinition(
     specialise=eps_assist.specialise,
     carry_through=("suspended",),
     evidence_methods=("sparse", "neural"),
+    candidate_library=EpsCandidateLibrary,
     discovery_rounds=("structure", "stick_slip", "resolution"),
     # the column's speed is the imposed input; the tires' has no internal signal
     element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},

@@ -1,8 +1,8 @@
-"""Memory operators behind the named candidate terms of both residual regressions.
+"""Memory operators behind a family's named candidate terms (``core.candidates``).
 
 Backlash and Dahl friction have memory: they are not functions of the current
-state, so the sparse regression (``sindy``) and the reading of the neural
-residual (``neural.explain``) build their terms from the same two operators.
+state, so a family's candidate library (one per family, read by both the sparse
+regression and the neural residual) builds its terms from these operators.
 """
 
 from __future__ import annotations
