@@ -10,13 +10,13 @@ import pytest
 
 from mbst.core.filtering import exponential_filter
 from mbst.core.metrics import fit_percent
+from mbst.core.operators import dahl, in_gap, play
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.evidence.sindy import (
     SindyControlModel,
     _filter_tau,
     residual_regression,
 )
-from mbst.core.operators import dahl, in_gap, play
 from mbst.identify.cascade import IdentifySettings, identify
 from mbst.io.campaign import read_campaign
 from mbst.systems.eps.library import EpsCandidateLibrary as LIBRARY
