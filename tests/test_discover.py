@@ -635,9 +635,11 @@ def test_a_failing_evidence_method_is_recorded_not_raised(backlash, monkeypatch)
     monkeypatch.setattr(neural.NeuralResidual, "fit", broken)
     monkeypatch.setattr(sindy, "residual_regression", broken)
     _, _, result = backlash
-    model, ev = collect.neural_evidence(result.residual_tests, DiscoverSettings())
+    library = result.base.model.candidate_library
+    model, ev = collect.neural_evidence(result.residual_tests, DiscoverSettings(), library)
     assert model is None and ev["error"] == "FloatingPointError: planted"
-    assert collect.sparse_evidence(result.residual_tests)["error"] == "FloatingPointError: planted"
+    assert collect.sparse_evidence(result.residual_tests, library)["error"] == \
+        "FloatingPointError: planted"
 
 
 @pytest.mark.slow  # ~2 × 100 s
