@@ -266,9 +266,10 @@ class _Design:
     nuis: np.ndarray  # which candidates are nuisance
     signs: np.ndarray
     sst: float
-    r0: np.ndarray = None  # residual after the nuisance projection
-    Z: np.ndarray = None  # unit-norm effect columns after the projection
-    eff_idx: np.ndarray = None  # candidate index of each column of Z
+    # set by ``project``:
+    r0: np.ndarray | None = None  # residual after the nuisance projection
+    Z: np.ndarray | None = None  # unit-norm effect columns after the projection
+    eff_idx: np.ndarray | None = None  # candidate index of each column of Z
     nuisance_share: float = 0.0
 
     def project(self) -> None:
