@@ -346,10 +346,12 @@ PRESLIDING = [k for k in EFFECTS if k.startswith("presliding_hysteresis:")]
 @pytest.mark.parametrize("key", PRESLIDING)
 def test_stiffest_presliding_is_the_base_model(key):
     """At the stiff end of its search range the Dahl state follows the base model's own
-    regularised Coulomb force, so the candidate nests the base and a refit that starts
-    there starts at the base's cost; the softest end is far from it (so the test can fail:
-    with eps-model.md's unregularised sign the rack's stiff end sat 23 % above the base)."""
-    from mbst.systems.eps.params import PARAM_SPECS
+    regularised Coulomb force (blended into it over the top of the range, ``stiff_share``),
+    so the candidate is the base there and a refit that starts there starts at the base's
+    cost; the softest end is far from it (so the test can fail: with eps-model.md's
+    unregularised sign the rack's stiff end sat 23 % above the base, and without the blend
+    the Dahl state's lag at velocity reversals left 0.03x noise)."""
+    from mbst.systems.eps.params import DAHL_BLEND_DECADES, PARAM_SPECS
 
     test_id = EFFECT_TEST[key]
     scenario, base = _demo_run(test_id, None)
@@ -366,6 +368,9 @@ def test_stiffest_presliding_is_the_base_model(key):
                    for ch in channels)
 
     stiff, soft = worst_ratio(spec.upper), worst_ratio(spec.lower)
-    print(f"{key}: stiff end {stiff:.3f}x noise, soft end {soft:.3f}x noise")
-    assert stiff < 0.1
-    assert soft > 10 * stiff
+    # where the blend into the stiff end begins, the Dahl state alone is already close
+    foot = worst_ratio(spec.upper / 10**DAHL_BLEND_DECADES)
+    print(f"{key}: stiff end {stiff:.2e}x noise, blend foot {foot:.3f}x, soft end {soft:.3f}x")
+    assert stiff < 1e-9
+    assert foot < 0.3
+    assert soft > 0.3

@@ -24,6 +24,7 @@ import numpy as np
 from numba import njit, prange
 
 from mbst.systems.eps.params import (
+    DAHL_BLEND_DECADES,
     FB_ASYM,
     FB_EXP,
     FB_LOAD,
@@ -32,6 +33,7 @@ from mbst.systems.eps.params import (
     FB_VEPS,
     FB_VSTRIB,
     PARAM_INDEX,
+    dahl_stiffest,
     friction_base,
 )
 
@@ -102,6 +104,10 @@ B_COL = friction_base("steering_column")
 B_MOT = friction_base("motor")
 B_RACK = friction_base("rack")
 B_TIRE = friction_base("tires")
+SIGMA_TOP_COL = dahl_stiffest("steering_column")
+SIGMA_TOP_MOT = dahl_stiffest("motor")
+SIGMA_TOP_RACK = dahl_stiffest("rack")
+SIGMA_TOP_TIRE = dahl_stiffest("tires")
 
 # bodies in Gauss–Seidel order
 BODY_PINION, BODY_MOTOR, BODY_RACK, BODY_WHEEL = 0, 1, 2, 3
@@ -150,11 +156,54 @@ def coulomb_level(p, b, fc0, v, load, pos_factor):
 
 
 @njit(**_JIT)
+def stiff_share(p, b):
+    """Share of friction element ``b``'s force that is its stiff-end law (the base's tanh
+    Coulomb): 1 without presliding (σ = 0), 0 for a Dahl state below the top
+    ``DAHL_BLEND_DECADES`` of its searched stiffness, a smooth step in log σ across them.
+
+    The Dahl state tends to that law as σ grows but lags it where the velocity crosses
+    zero (its rate σ|v|/F_c vanishes there); the blend makes the stiffest presliding the
+    base model exactly, so the candidate nests the base at its neutral start.
+    """
+    sigma = p[b + FB_SIGMA]
+    if sigma <= 0.0:
+        return 1.0
+    if b == B_COL:
+        top = SIGMA_TOP_COL
+    elif b == B_MOT:
+        top = SIGMA_TOP_MOT
+    elif b == B_RACK:
+        top = SIGMA_TOP_RACK
+    else:
+        top = SIGMA_TOP_TIRE
+    x = 1.0 + math.log10(sigma / top) / DAHL_BLEND_DECADES
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    return x * x * (3.0 - 2.0 * x)
+
+
+@njit(**_JIT)
+def stiff_end_blend(p, b, fc0, v, z, load, pos_factor):
+    """What the stiff-end blend adds to a presliding element's force ``z`` (``friction``
+    with σ > 0 gives the Dahl state alone) and its derivative, with ``z`` held."""
+    w = stiff_share(p, b)
+    if w <= 0.0:
+        return 0.0, 0.0
+    lvl, dlvl = coulomb_level(p, b, fc0, v, load, pos_factor)
+    veps = p[b + FB_VEPS]
+    th = math.tanh(v / veps)
+    return w * (th * lvl - z), w * ((1.0 - th * th) / veps * lvl + th * dlvl)
+
+
+@njit(**_JIT)
 def friction(p, b, fc0, bv, v, z, load, pos_factor):
     """Force of friction element ``b`` at velocity ``v`` and its derivative.
 
     Smooth Coulomb (or the Dahl state ``z`` when the element has presliding
-    hysteresis) plus viscous or power-law damping.
+    hysteresis; ``stiff_end_blend`` adds what its stiff end blends in) plus viscous or
+    power-law damping.
     """
     veps = p[b + FB_VEPS]
     if p[b + FB_SIGMA] > 0.0:
@@ -379,9 +428,20 @@ def stepped_friction(p, b, fc0, bv, v, z, load, pos_factor, h):
     sigma = p[b + FB_SIGMA]
     if sigma <= 0.0:
         return friction(p, b, fc0, bv, v, z, load, pos_factor)
-    zn = dahl_step(p, b, fc0, v, z, load, pos_factor, h)
+    return _stepped_presliding(p, b, fc0, bv, v, z, load, pos_factor, h)
+
+
+@njit(**_JIT)
+def _stepped_presliding(p, b, fc0, bv, v, z, load, pos_factor, h):
+    """``stepped_friction`` of an element with presliding (σ > 0)."""
+    sigma = p[b + FB_SIGMA]
+    w = stiff_share(p, b)
+    zn = dahl_step(p, b, fc0, v, z, load, pos_factor, h) if w < 1.0 else z
     f, df = friction(p, b, fc0, bv, v, zn, load, pos_factor)
-    if v == 0.0:
+    g, dg = stiff_end_blend(p, b, fc0, v, zn, load, pos_factor)
+    f += g
+    df += dg
+    if v == 0.0 or w >= 1.0:
         return f, df
     # dz_n/dv with the level held (Newton is safeguarded by bisection)
     lvl, _ = coulomb_level(p, b, fc0, v, load, pos_factor)
@@ -390,7 +450,8 @@ def stepped_friction(p, b, fc0, bv, v, z, load, pos_factor, h):
     th = math.tanh(v / veps)
     e = math.exp(-sigma * abs(v) * h / lvl)
     s = 1.0 if v > 0.0 else -1.0
-    return f, df + lvl * (1.0 - th * th) / veps * (1.0 - e) - (z - lvl * th) * sigma * h / lvl * e * s
+    dzn = lvl * (1.0 - th * th) / veps * (1.0 - e) - (z - lvl * th) * sigma * h / lvl * e * s
+    return f, df + (1.0 - w) * dzn
 
 
 @njit(**_JIT)
@@ -472,7 +533,7 @@ def _guess_terms(body, x, p, scen, aux):
         lvl = (p[B_RACK] + p[B_RACK + FB_LOAD] * aux[6] / r) * rack_pos_factor(p, xr)
         bv = p[B_RACK + 1]
         sc = r if body == BODY_PINION else 1.0
-    if p[b + FB_SIGMA] > 0.0:
+    if p[b + FB_SIGMA] > 0.0 and stiff_share(p, b) < 1.0:
         lvl = 0.0
     return lvl * sc, p[b + FB_VEPS] / sc, bv * sc * sc
 
@@ -609,6 +670,8 @@ def outputs(x, th_sw, om_sw, p, scen, mode, force, aux, out):
     """Model outputs at the current state (sensor offsets are added outside)."""
     _loads(x, th_sw, om_sw, p, scen, mode, force, aux)
     f_col, _ = friction(p, B_COL, p[B_COL], p[B_COL + 1], om_sw, x[S_ZCOL], aux[6], 1.0)
+    if p[B_COL + FB_SIGMA] > 0.0:
+        f_col += stiff_end_blend(p, B_COL, p[B_COL], om_sw, x[S_ZCOL], aux[6], 1.0)[0]
     xr, vr = rack_kinematics(x, p)
     f_tie = aux[2]
     if wheels_move(scen):
