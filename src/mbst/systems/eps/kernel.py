@@ -33,6 +33,7 @@ from mbst.systems.eps.params import (
     FB_VEPS,
     FB_VSTRIB,
     PARAM_INDEX,
+    RIGID_RACK_MESH_BELOW_RAD,
     dahl_stiffest,
     friction_base,
 )
@@ -290,7 +291,7 @@ def assist_torque_along(t_tb, om_sw, p):
 # ---- the model ----------------------------------------------------------------------
 @njit(**_JIT)
 def rack_is_body(p):
-    return p[P_RPW] > 0.0
+    return p[P_RPW] > RIGID_RACK_MESH_BELOW_RAD
 
 
 @njit(**_JIT)

@@ -13,7 +13,13 @@ import numpy as np
 
 from mbst.core.filtering import angular_velocity
 from mbst.systems.eps import kernel as K
-from mbst.systems.eps.params import N_PARAMS, PARAM_INDEX, friction_param, vector_from
+from mbst.systems.eps.params import (
+    N_PARAMS,
+    PARAM_INDEX,
+    friction_param,
+    rack_is_separate_body,
+    vector_from,
+)
 
 # h·ω_max below this keeps the symplectic step stable (limit 2) and accurate
 _H_OMEGA = 1.4
@@ -43,7 +49,7 @@ def max_mode_rad_per_s(p: np.ndarray, scenario: str) -> float:
     g = lambda name: p[PARAM_INDEX[name]]
     r, n = g("pinion_radius_m"), g("worm_gear_ratio")
     jp, jm = g("column_inertia_kgm2"), g("motor_inertia_kgm2") * n * n
-    if g("rack_pinion.backlash.width_rad") > 0:
+    if rack_is_separate_body(g("rack_pinion.backlash.width_rad")):
         jr = g("rack_pinion.rack_mass_kg") * r * r
         jp = max(jp - jr, 0.1 * jp)
     else:
@@ -80,7 +86,7 @@ def _stribeck_limit_s(p: np.ndarray, scenario: str) -> float:
     """
     g = lambda name: p[PARAM_INDEX[name]]
     r = g("pinion_radius_m")
-    rack_body = g("rack_pinion.backlash.width_rad") > 0
+    rack_body = rack_is_separate_body(g("rack_pinion.backlash.width_rad"))
     masses = {
         "steering_column": math.inf,  # acts on the measured angle: no body
         "motor": g("motor_inertia_kgm2"),
