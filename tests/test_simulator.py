@@ -343,6 +343,19 @@ def test_exponential_filter_tau_zero_is_identity():
 PRESLIDING = [k for k in EFFECTS if k.startswith("presliding_hysteresis:")]
 
 
+def _worst_noise_ratio(test_id: str, values: dict[str, float]) -> float:
+    """Largest RMS difference (in noise RMS) over a demo test's channels between the clean
+    rig with ``values`` set and the clean rig."""
+    scenario, base = _demo_run(test_id, None)
+    pt = {p.id: p for p in demo_plan()}[test_id]
+    t, angle = input_profile(pt.input, 500.0)
+    p = vector_from(values, base=BenchRecipe(effects=[]).true_params())
+    sim = eps.simulate(pt.scenario, pt.motor, t, angle, p)
+    channels = [c for c in _channels_for(scenario, DEFAULT_SENSORS) if c != "steering_angle_rad"]
+    return max(float(np.sqrt(np.mean((sim[ch] - base[ch]) ** 2))) / NOISE_RMS[ch]
+               for ch in channels)
+
+
 @pytest.mark.parametrize("key", PRESLIDING)
 def test_stiffest_presliding_is_the_base_model(key):
     """At the stiff end of its search range the Dahl state follows the base model's own
@@ -354,18 +367,11 @@ def test_stiffest_presliding_is_the_base_model(key):
     from mbst.systems.eps.params import DAHL_BLEND_DECADES, PARAM_SPECS
 
     test_id = EFFECT_TEST[key]
-    scenario, base = _demo_run(test_id, None)
-    pt = {p.id: p for p in demo_plan()}[test_id]
-    t, angle = input_profile(pt.input, 500.0)
     sigma = next(iter(EFFECTS[key].free))
     spec = PARAM_SPECS[PARAM_INDEX[sigma]]
-    channels = [c for c in _channels_for(scenario, DEFAULT_SENSORS) if c != "steering_angle_rad"]
 
     def worst_ratio(value: float) -> float:
-        p = vector_from({sigma: value}, base=BenchRecipe(effects=[]).true_params())
-        sim = eps.simulate(pt.scenario, pt.motor, t, angle, p)
-        return max(float(np.sqrt(np.mean((sim[ch] - base[ch]) ** 2))) / NOISE_RMS[ch]
-                   for ch in channels)
+        return _worst_noise_ratio(test_id, {sigma: value})
 
     stiff, soft = worst_ratio(spec.upper), worst_ratio(spec.lower)
     # where the blend into the stiff end begins, the Dahl state alone is already close
@@ -383,17 +389,10 @@ def test_a_rack_pinion_gap_at_its_neutral_start_is_the_rigid_base_model():
     starts above the base (it did: 0.06 % on a realistic bench, and fell back)."""
     key = "backlash:rack_pinion"
     test_id = EFFECT_TEST[key]
-    scenario, base = _demo_run(test_id, None)
-    pt = {p.id: p for p in demo_plan()}[test_id]
-    t, angle = input_profile(pt.input, 500.0)
     width = next(iter(EFFECTS[key].free))
-    channels = [c for c in _channels_for(scenario, DEFAULT_SENSORS) if c != "steering_angle_rad"]
 
     def worst_ratio(value: float) -> float:
-        p = vector_from({width: value}, base=BenchRecipe(effects=[]).true_params())
-        sim = eps.simulate(pt.scenario, pt.motor, t, angle, p)
-        return max(float(np.sqrt(np.mean((sim[ch] - base[ch]) ** 2))) / NOISE_RMS[ch]
-                   for ch in channels)
+        return _worst_noise_ratio(test_id, {width: value})
 
     assert worst_ratio(1e-11) == 0.0
     assert worst_ratio(1e-4) > 0.0  # a gap of 0.006° is a compliant rack body
