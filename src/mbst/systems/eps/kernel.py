@@ -157,6 +157,15 @@ def coulomb_level(p, b, fc0, v, load, pos_factor):
 
 
 @njit(**_JIT)
+def tanh_coulomb(p, b, fc0, v, load, pos_factor):
+    """The regularised Coulomb force F_c(v)·tanh(v/v_ε) of element ``b`` and its dF/dv."""
+    lvl, dlvl = coulomb_level(p, b, fc0, v, load, pos_factor)
+    veps = p[b + FB_VEPS]
+    th = math.tanh(v / veps)
+    return th * lvl, (1.0 - th * th) / veps * lvl + th * dlvl
+
+
+@njit(**_JIT)
 def stiff_share(p, b):
     """Share of friction element ``b``'s force that is its stiff-end law (the base's tanh
     Coulomb): 1 without presliding (σ = 0), 0 for a Dahl state below the top
@@ -192,10 +201,8 @@ def stiff_end_blend(p, b, fc0, v, z, load, pos_factor):
     w = stiff_share(p, b)
     if w <= 0.0:
         return 0.0, 0.0
-    lvl, dlvl = coulomb_level(p, b, fc0, v, load, pos_factor)
-    veps = p[b + FB_VEPS]
-    th = math.tanh(v / veps)
-    return w * (th * lvl - z), w * ((1.0 - th * th) / veps * lvl + th * dlvl)
+    f, df = tanh_coulomb(p, b, fc0, v, load, pos_factor)
+    return w * (f - z), w * df
 
 
 @njit(**_JIT)
@@ -210,10 +217,7 @@ def friction(p, b, fc0, bv, v, z, load, pos_factor):
     if p[b + FB_SIGMA] > 0.0:
         f, df = z, 0.0
     else:
-        lvl, dlvl = coulomb_level(p, b, fc0, v, load, pos_factor)
-        th = math.tanh(v / veps)
-        f = th * lvl
-        df = (1.0 - th * th) / veps * lvl + th * dlvl
+        f, df = tanh_coulomb(p, b, fc0, v, load, pos_factor)
     a = p[b + FB_EXP]
     if a == 1.0:
         return f + bv * v, df + bv

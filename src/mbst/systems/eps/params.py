@@ -66,7 +66,7 @@ _FRICTION_TYPICAL = {
 # 0.3x and 0.7x, and a refit from there ended above the base (test_simulator).
 STIFFEST_DAHL = 1e4
 # Over its top decade (1e3-1e4× typical) the presliding force blends into that stiff end
-# (``kernel.dahl_force``): the stiffest Dahl state still lagged its target where the velocity
+# (``kernel.stiff_share``, ``kernel.stiff_end_blend``): the stiffest Dahl state still lagged its target where the velocity
 # crosses zero (σ|v|/F_c → 0), and the candidate's neutral start cost up to 0.1 % more than
 # the base on a realistic bench, so its refit fell back; at the bound it is the base exactly.
 DAHL_BLEND_DECADES = 1.0
