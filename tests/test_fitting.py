@@ -106,6 +106,56 @@ def test_the_point_is_reused_only_at_the_batch_step(tests_and_truth, monkeypatch
     assert rows_seen == [n] * len(prob.tests)
 
 
+def test_rows_each_alone_are_simulated_at_their_own_step(tests_and_truth):
+    """Separate candidates (a grid) evaluated together give each row bitwise what a
+    residual evaluation of that row alone gives, though their steps differ."""
+    tests, p = tests_and_truth
+    model = tests[0].model
+    ps = _rows(model, p, ["worm_gear.stiffness_nm_per_rad"], [1.0, 4.0, 0.5, 4.0])
+    stage = [pt for pt in tests if pt.scenario == "free_tie_rods"]
+    assert any(len(set(model.row_steps(pt, ps))) > 1 for pt in stage)
+    together = fitting_mod.twins_each_alone(stage, [ps] * len(stage))
+    batch = twins_of_tests(stage, [ps] * len(stage))
+    differs = False
+    for pt, rows, batch_rows in zip(stage, together, batch, strict=True):
+        for q, got, in_batch in zip(ps, rows, batch_rows, strict=True):
+            alone = fitting_mod.simulate_twin(pt, q)
+            for ch in pt.measured:
+                np.testing.assert_array_equal(got[ch], alone[ch])
+                differs |= not np.array_equal(in_batch[ch], alone[ch])
+    assert differs  # the finest step of a batch does move the coarser rows
+
+
+def test_a_sensor_offsets_column_is_exact_and_simulates_nothing(tests_and_truth,
+                                                                monkeypatch):
+    """An offset shifts its channel: its Jacobian column is the channel's weight, which
+    forward differences of the simulation approach, at no simulation of its own."""
+    tests, p = tests_and_truth
+    stage = [pt for pt in tests if pt.scenario == "free_tie_rods"]
+    free = ["worm_gear.stiffness_nm_per_rad", "offset.rack_position_m", "rack.coulomb_n"]
+    assert "rack_position_m" in stage[0].measured
+
+    def problem(model):
+        pts = [replace(pt, model=model) for pt in stage]
+        return FitProblem(pts, {pt.id: list(pt.measured) for pt in pts}, free, p,
+                          channel_scales(tests), decimate=2)
+
+    model = stage[0].model
+    exact = problem(model)
+    differenced = problem(replace(model, offset_channels={}))
+    u = exact.u_of(p) + 0.01
+    rows_seen: list[int] = []
+    real = fitting_mod.twins_of_tests
+    monkeypatch.setattr(fitting_mod, "twins_of_tests",
+                        lambda pts, pss: rows_seen.extend(len(x) for x in pss) or real(pts, pss))
+    j_exact = exact.jacobian(u)
+    assert rows_seen == [len(free)] * len(stage)  # the point and two perturbations
+    j_diff = differenced.jacobian(u)
+    np.testing.assert_allclose(j_exact[:, 1], j_diff[:, 1], rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(j_exact[:, [0, 2]], j_diff[:, [0, 2]])
+    assert np.count_nonzero(j_exact[:, 1]) > 0
+
+
 def test_row_steps_are_the_simulators_sub_steps(tests_and_truth):
     tests, p = tests_and_truth
     pt = next(t for t in tests if t.scenario == "free_tie_rods")

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbst.core.model import EffectSpec, ModelDefinition
-from mbst.identify.fitting import FitProblem, FitResult, PreparedTest, solve, twins_of_tests
+from mbst.identify.fitting import FitProblem, FitResult, PreparedTest, solve, twins_each_alone
 
 # Starting grid of each headline parameter, as multiples of the catalogue's realistic size
 # (or absolute values where a multiple makes no sense).
@@ -225,7 +225,7 @@ class StageScorer:
         prob = self.problem(self.stage_free, self.base, tests)
         out = np.zeros((len(ps), len(tests)))
         blocks = []
-        for j, (pt, twins) in enumerate(zip(tests, twins_of_tests(tests, [ps] * len(tests)),
+        for j, (pt, twins) in enumerate(zip(tests, twins_each_alone(tests, [ps] * len(tests)),
                                             strict=True)):
             for i, tw in enumerate(twins):
                 r = prob._res_of_twin(pt, tw)
@@ -297,7 +297,7 @@ class StageScorer:
         stage's tests one after the other; shape (len(ps), samples). Sums to ``costs``."""
         prob = self.problem(self.stage_free, self.base, self.tests)
         rows = [[] for _ in ps]
-        for pt, twins in zip(self.tests, twins_of_tests(self.tests, [ps] * len(self.tests)),
+        for pt, twins in zip(self.tests, twins_each_alone(self.tests, [ps] * len(self.tests)),
                              strict=True):
             n = len(pt.time_s[:: prob.decimate])
             for i, tw in enumerate(twins):

@@ -122,6 +122,42 @@ def twins_of_tests(pts: list[PreparedTest], pss: list[np.ndarray]
     return [[_filtered(pt, sim) for sim in rows] for pt, rows in zip(pts, sims, strict=True)]
 
 
+def step_groups(pt: PreparedTest, ps: np.ndarray) -> list[np.ndarray]:
+    """Indices of the rows of ``ps`` grouped by the integration step each needs on ``pt``.
+
+    A batch runs at the finest step any of its rows needs (``simulate_tests``); rows
+    grouped so are each integrated as they would be alone. One group where the family
+    has no step rule.
+    """
+    ps = np.atleast_2d(ps)
+    steps = pt.model.row_steps
+    if steps is None or len(ps) < 2:
+        return [np.arange(len(ps))]
+    n = np.asarray(steps(pt, ps))
+    return [np.flatnonzero(n == k) for k in np.unique(n)]
+
+
+def twins_each_alone(pts: list[PreparedTest], pss: list[np.ndarray]
+                     ) -> list[list[dict[str, np.ndarray]]]:
+    """``twins_of_tests`` with every row integrated at the step it needs itself, as one
+    residual evaluation integrates it: for rows that are separate candidates (a grid, a
+    bootstrap), not the perturbations of one Jacobian. A Stribeck grid's steepest dip
+    set the step of the whole grid, twice the work of its rows alone.
+    """
+    flat_pts, flat_ps, where = [], [], []
+    for t, (pt, ps) in enumerate(zip(pts, pss, strict=True)):
+        ps = np.atleast_2d(ps)
+        for idx in step_groups(pt, ps):
+            flat_pts.append(pt)
+            flat_ps.append(ps[idx])
+            where.append((t, idx))
+    out: list[list] = [[None] * len(np.atleast_2d(ps)) for ps in pss]
+    for (t, idx), rows in zip(where, twins_of_tests(flat_pts, flat_ps), strict=True):
+        for i, tw in zip(idx, rows, strict=True):
+            out[t][i] = tw
+    return out
+
+
 def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
     """Simulated channels of a prepared test, filtered like their measured twins.
 
@@ -298,7 +334,13 @@ class FitProblem:
         return bool(n[0] == n[1:].max())
 
     def jacobian(self, u: np.ndarray) -> np.ndarray:
-        """Forward differences, all perturbations of a test simulated in one batch.
+        """Jacobian of the residuals at ``u``: the data rows, then the prior's."""
+        return np.concatenate([self._difference_jacobian(u), np.diag(self.prior_w)], axis=0)
+
+    def _difference_jacobian(self, u: np.ndarray) -> np.ndarray:
+        """Forward differences of the data residuals, all perturbations of a test simulated
+        in one batch; a sensor offset's column is exact and costs no simulation (it shifts
+        its channel, and the filter passes a constant unchanged).
 
         The unperturbed point is taken from the residual evaluation at ``u`` when
         that is bitwise what the batch would give (least_squares asks for the
@@ -307,27 +349,44 @@ class FitProblem:
         h = 1e-5 * np.maximum(1.0, np.abs(u))
         # step away from the nearer bound so the perturbed point stays feasible
         sgn = np.where(u + h > self.ub, -1.0, 1.0)
-        us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in range(len(u))]
+        simulated = [j for j, n in enumerate(self.free) if n not in self.model.offset_channels]
+        us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in simulated]
         ps = np.stack([self.p_of(v) for v in us])
         last = self._last[1] if self._last is not None and np.array_equal(
             self._last[0], u) else None
         reuse = [last is not None and self._reusable(pt, ps) for pt in self.tests]
-        sims = twins_of_tests(self.tests, [ps[1:] if r else ps for r in reuse])
+        sims = twins_of_tests(self.tests, [ps[1:] if r else ps for r in reuse]) \
+            if simulated else [[]] * len(self.tests)
+        slope = self.dtheta_du(u)
         cols = []
         for i, pt in enumerate(self.tests):
-            if reuse[i]:
-                twins, r0 = [None, *sims[i]], last[i]
-            else:
-                twins = sims[i]
-                r0 = self._res_of_twin(pt, twins[0])
-            r0 = self._bounded(r0)
-            cols.append(np.stack(
-                [(self._bounded(self._res_of_twin(pt, twins[j + 1])) - r0) / (sgn[j] * h[j])
-                 for j in range(len(u))], axis=1))
+            block = self._offset_columns(pt, slope)
+            if simulated:
+                if reuse[i]:
+                    twins, r0 = [None, *sims[i]], last[i]
+                else:
+                    twins = sims[i]
+                    r0 = self._res_of_twin(pt, twins[0])
+                r0 = self._bounded(r0)
+                for k, j in enumerate(simulated):
+                    block[:, j] = (self._bounded(self._res_of_twin(pt, twins[k + 1])) - r0) \
+                        / (sgn[j] * h[j])
+            cols.append(block)
         self.n_eval += len(us)
-        cols.append(np.diag(self.prior_w))
         jac = np.concatenate(cols, axis=0)
         return np.where(np.isfinite(jac), jac, 0.0)
+
+    def _offset_columns(self, pt: PreparedTest, slope: np.ndarray) -> np.ndarray:
+        """Jacobian block of test ``pt``: the sensor offsets' columns filled, zeros else."""
+        n = len(pt.time_s[:: self.decimate])
+        chans = self.channels[pt.id]
+        block = np.zeros((n * len(chans), len(self.free)))
+        for j, name in enumerate(self.free):
+            ch = self.model.offset_channels.get(name)
+            if ch in chans:
+                k = chans.index(ch)
+                block[k * n:(k + 1) * n, j] = self._weights(pt, ch) * slope[j]
+        return block
 
     def cost(self, u: np.ndarray) -> float:
         r = self.residuals(u)

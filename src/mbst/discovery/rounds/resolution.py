@@ -43,7 +43,7 @@ import numpy as np
 from mbst.core.model import EffectSpec, ModelDefinition
 from mbst.discovery.state import DiscoveryState
 from mbst.discovery.structure import StageScorer, aic_delta, stage_for
-from mbst.identify.fitting import PreparedTest, twins_of_tests
+from mbst.identify.fitting import PreparedTest, step_groups, twins_of_tests
 
 # multiples of the catalogue's realistic size tried (each clipped to the parameter's bounds):
 # down to a tenth, so the smallest size these tests resolve (the detection limit) is stated
@@ -123,18 +123,26 @@ def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float) -> di
 def _stage_signals(scorer: StageScorer, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Weighted twin of each row minus that of ``p`` (the stage's residual layout).
 
-    ``p`` is simulated in the same batch as the rows, not once for all: a batch runs
-    at the finest step any row needs (a Stribeck rise needs many), and only twins
-    integrated alike difference to the effect alone.
+    Only twins integrated alike difference to the effect alone, and a batch runs at the
+    finest step any of its rows needs: the rows are grouped by the step they need
+    (``step_groups``) and ``p`` is simulated in each group. One batch of all sizes ran
+    at the step of the steepest Stribeck dip, twice the work of the groups.
     """
     prob = scorer.problem(scorer.stage_free, p)
-    tests = scorer.tests
-    twins = twins_of_tests(tests, [np.vstack([p[None], rows])] * len(tests))
-    out = []
-    for pt, tw in zip(tests, twins, strict=True):
+    flat_pts, flat_ps, where = [], [], []
+    for t, pt in enumerate(scorer.tests):
+        for idx in step_groups(pt, rows):
+            flat_pts.append(pt)
+            flat_ps.append(np.vstack([p[None], rows[idx]]))
+            where.append((t, idx))
+    blocks: list[np.ndarray | None] = [None] * len(scorer.tests)
+    for (t, idx), tw in zip(where, twins_of_tests(flat_pts, flat_ps), strict=True):
+        pt = scorer.tests[t]
         r0 = prob._res_of_twin(pt, tw[0])
-        out.append(np.stack([prob._res_of_twin(pt, t) - r0 for t in tw[1:]]))
-    return np.concatenate(out, axis=1)
+        if blocks[t] is None:
+            blocks[t] = np.empty((len(rows), len(r0)))
+        blocks[t][idx] = np.stack([prob._res_of_twin(pt, x) - r0 for x in tw[1:]])
+    return np.concatenate(blocks, axis=1)
 
 
 def _refit_basis(scorer: StageScorer, p: np.ndarray) -> np.ndarray:
