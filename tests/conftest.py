@@ -1,9 +1,11 @@
 """Bench campaigns shared by several test modules, built once per test session.
 
-Each fixture returns the folder ``run_bench`` wrote: ``<dir>/campaign/`` and
+Each ``*_bench`` fixture returns the folder ``run_bench`` wrote: ``<dir>/campaign/`` and
 ``<dir>/truth.json``. The folders are shared, so tests must only read them
 (``read_campaign(<dir> / "campaign")``, the truth file). A test that edits a
-campaign's files builds its own campaign in ``tmp_path``.
+campaign's files builds its own campaign in ``tmp_path``. Each ``*_identified``
+fixture is the campaign and its identification with the default settings, shared
+alike: read it, never change it.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from mbst.identify.cascade import IdentifyResult, IdentifySettings, identify
+from mbst.io.campaign import Campaign, read_campaign
 from mbst.systems.eps.bench import BenchRecipe, run_bench
 
 
@@ -33,3 +37,20 @@ def demo_backlash_bench(tmp_path_factory) -> Path:
     test_neural)."""
     return _bench(tmp_path_factory, "demo-backlash",
                   BenchRecipe(effects=["backlash:worm_gear"], seed=1))
+
+
+def _identified(bench: Path) -> tuple[Campaign, IdentifyResult]:
+    camp = read_campaign(bench / "campaign")
+    return camp, identify(camp, IdentifySettings())
+
+
+@pytest.fixture(scope="session")
+def demo_clean_identified(demo_clean_bench) -> tuple[Campaign, IdentifyResult]:
+    """``demo_clean_bench`` identified (test_identify, test_sindy, test_neural)."""
+    return _identified(demo_clean_bench)
+
+
+@pytest.fixture(scope="session")
+def demo_backlash_identified(demo_backlash_bench) -> tuple[Campaign, IdentifyResult]:
+    """``demo_backlash_bench`` identified (test_identify, test_sindy, test_neural)."""
+    return _identified(demo_backlash_bench)

@@ -33,16 +33,15 @@ WELL_DETERMINED = (
 
 
 @pytest.fixture(scope="module")
-def clean(demo_clean_bench):
-    camp = read_campaign(demo_clean_bench / "campaign")
+def clean(demo_clean_bench, demo_clean_identified):
+    camp, result = demo_clean_identified
     truth = json.loads((demo_clean_bench / "truth.json").read_text())["params"]
-    return camp, vector_from(truth), identify(camp, IdentifySettings())
+    return camp, vector_from(truth), result
 
 
 @pytest.fixture(scope="module")
-def backlash(demo_backlash_bench):
-    camp = read_campaign(demo_backlash_bench / "campaign")
-    return camp, identify(camp, IdentifySettings())
+def backlash(demo_backlash_identified):
+    return demo_backlash_identified
 
 
 def test_clean_campaign_recovers_every_identifiable_parameter(clean):

@@ -11,8 +11,6 @@ import torch
 from mbst.core.metrics import fit_percent
 from mbst.discovery.data import residual_data
 from mbst.discovery.evidence.neural import NeuralResidual, explain, plot_learned
-from mbst.identify.cascade import IdentifySettings, identify
-from mbst.io.campaign import read_campaign
 from mbst.systems.eps.library import EpsCandidateLibrary
 
 # Measured on the seed-1 backlash campaign (worm-gear gap 0.035 rad): the free_tie_rods
@@ -21,20 +19,19 @@ from mbst.systems.eps.library import EpsCandidateLibrary
 MIN_GAIN_POINTS = 3.0
 
 
-def _campaign(bench_dir):
-    camp = read_campaign(bench_dir / "campaign")
-    res = identify(camp, IdentifySettings())
+def _residuals(identified):
+    _, res = identified
     return [residual_data(pt, res.params, res.twins.get(pt.id)) for pt in res.prepared.values()]
 
 
 @pytest.fixture(scope="module")
-def backlash(demo_backlash_bench):
-    return _campaign(demo_backlash_bench)
+def backlash(demo_backlash_identified):
+    return _residuals(demo_backlash_identified)
 
 
 @pytest.fixture(scope="module")
-def clean(demo_clean_bench):
-    return _campaign(demo_clean_bench)
+def clean(demo_clean_identified):
+    return _residuals(demo_clean_identified)
 
 
 @pytest.fixture(scope="module")

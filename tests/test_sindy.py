@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,28 +16,25 @@ from mbst.discovery.evidence.sindy import (
     _filter_tau,
     residual_regression,
 )
-from mbst.identify.cascade import IdentifySettings, identify
-from mbst.io.campaign import read_campaign
+from mbst.identify.cascade import IdentifySettings
 from mbst.systems.eps.library import EpsCandidateLibrary as LIBRARY
 
 TORQUE = "steering_torque_nm"
 
 
-def _campaign(bench_dir: Path) -> list[TestResidual]:
-    camp = read_campaign(bench_dir / "campaign")
-    # one start is enough on the demo campaign and halves the time (same optimum here)
-    res = identify(camp, IdentifySettings(multistart=1))
+def _residuals(identified) -> list[TestResidual]:
+    _, res = identified
     return [residual_data(pt, res.params, res.twins.get(pt.id)) for pt in res.prepared.values()]
 
 
 @pytest.fixture(scope="module")
-def clean(demo_clean_bench) -> list[TestResidual]:
-    return _campaign(demo_clean_bench)
+def clean(demo_clean_identified) -> list[TestResidual]:
+    return _residuals(demo_clean_identified)
 
 
 @pytest.fixture(scope="module")
-def backlash(demo_backlash_bench) -> list[TestResidual]:
-    return _campaign(demo_backlash_bench)
+def backlash(demo_backlash_identified) -> list[TestResidual]:
+    return _residuals(demo_backlash_identified)
 
 
 @pytest.fixture(scope="module")
