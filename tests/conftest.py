@@ -18,6 +18,19 @@ from mbst.identify.cascade import IdentifyResult, IdentifySettings, identify
 from mbst.io.campaign import Campaign, read_campaign
 from mbst.systems.eps.bench import BenchRecipe, run_bench
 
+# Test modules that read the same session fixtures run on one xdist worker (a session
+# fixture is built once per worker): the demo identifications are the longest to build.
+# Every other module is a group of its own (``--dist loadgroup``, pyproject.toml).
+SHARED_WORKER = {"test_identify.py": "demo-identified", "test_neural.py": "demo-identified",
+                 "test_sindy.py": "demo-identified"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group(SHARED_WORKER.get(name, name)))
+
 
 def _bench(tmp_path_factory: pytest.TempPathFactory, name: str, recipe: BenchRecipe) -> Path:
     out = tmp_path_factory.mktemp(name)
