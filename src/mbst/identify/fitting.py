@@ -137,6 +137,23 @@ def step_groups(pt: PreparedTest, ps: np.ndarray) -> list[np.ndarray]:
     return [np.flatnonzero(n == k) for k in np.unique(n)]
 
 
+def batches_by_step(pts: list[PreparedTest], pss: list[np.ndarray],
+                    lead: np.ndarray | None = None
+                    ) -> tuple[list[PreparedTest], list[np.ndarray], list[tuple[int, np.ndarray]]]:
+    """Each test's rows split into batches of rows that need the same step
+    (``step_groups``), as ``twins_of_tests`` takes them: the tests, the batches, and
+    for each batch (test index, row indices). With ``lead``, that row comes first in every
+    batch, integrated at the batch's step (what a difference to it needs)."""
+    flat_pts, flat_ps, where = [], [], []
+    for t, (pt, ps) in enumerate(zip(pts, pss, strict=True)):
+        ps = np.atleast_2d(ps)
+        for idx in step_groups(pt, ps):
+            flat_pts.append(pt)
+            flat_ps.append(ps[idx] if lead is None else np.vstack([lead[None], ps[idx]]))
+            where.append((t, idx))
+    return flat_pts, flat_ps, where
+
+
 def twins_each_alone(pts: list[PreparedTest], pss: list[np.ndarray]
                      ) -> list[list[dict[str, np.ndarray]]]:
     """``twins_of_tests`` with every row integrated at the step it needs itself, as one
@@ -144,13 +161,7 @@ def twins_each_alone(pts: list[PreparedTest], pss: list[np.ndarray]
     bootstrap), not the perturbations of one Jacobian. A Stribeck grid's steepest dip
     set the step of the whole grid, twice the work of its rows alone.
     """
-    flat_pts, flat_ps, where = [], [], []
-    for t, (pt, ps) in enumerate(zip(pts, pss, strict=True)):
-        ps = np.atleast_2d(ps)
-        for idx in step_groups(pt, ps):
-            flat_pts.append(pt)
-            flat_ps.append(ps[idx])
-            where.append((t, idx))
+    flat_pts, flat_ps, where = batches_by_step(pts, pss)
     out: list[list] = [[None] * len(np.atleast_2d(ps)) for ps in pss]
     for (t, idx), rows in zip(where, twins_of_tests(flat_pts, flat_ps), strict=True):
         for i, tw in zip(idx, rows, strict=True):

@@ -43,7 +43,7 @@ import numpy as np
 from mbst.core.model import EffectSpec, ModelDefinition
 from mbst.discovery.state import DiscoveryState
 from mbst.discovery.structure import StageScorer, aic_delta, stage_for
-from mbst.identify.fitting import PreparedTest, step_groups, twins_of_tests
+from mbst.identify.fitting import PreparedTest, batches_by_step, twins_of_tests
 
 # multiples of the catalogue's realistic size tried (each clipped to the parameter's bounds):
 # down to a tenth, so the smallest size these tests resolve (the detection limit) is stated
@@ -125,16 +125,11 @@ def _stage_signals(scorer: StageScorer, p: np.ndarray, rows: np.ndarray) -> np.n
 
     Only twins integrated alike difference to the effect alone, and a batch runs at the
     finest step any of its rows needs: the rows are grouped by the step they need
-    (``step_groups``) and ``p`` is simulated in each group. One batch of all sizes ran
+    (``batches_by_step``) and ``p`` is simulated in each group. One batch of all sizes ran
     at the step of the steepest Stribeck dip, twice the work of the groups.
     """
     prob = scorer.problem(scorer.stage_free, p)
-    flat_pts, flat_ps, where = [], [], []
-    for t, pt in enumerate(scorer.tests):
-        for idx in step_groups(pt, rows):
-            flat_pts.append(pt)
-            flat_ps.append(np.vstack([p[None], rows[idx]]))
-            where.append((t, idx))
+    flat_pts, flat_ps, where = batches_by_step(scorer.tests, [rows] * len(scorer.tests), lead=p)
     blocks: list[np.ndarray | None] = [None] * len(scorer.tests)
     for (t, idx), tw in zip(where, twins_of_tests(flat_pts, flat_ps), strict=True):
         pt = scorer.tests[t]
