@@ -60,6 +60,9 @@ def run_case(effects: list[str], seed: int, realism: BenchRealism) -> dict:
                                  + json.dumps(e["parameters"]) for e in truth["effects"]),
             "named": ":".join(named) if named else "",
             "also": ",".join(f.indistinguishable_from) if f else "",
+            # other pairs the campaign does not rule out (acceptance.ranking_bootstrap)
+            "not_ruled_out": ",".join(f"{a['effect']}:{a['component']}"
+                                      for a in f.alternatives) if f else "",
             "confidence": round(f.confidence, 3) if f else None,
             "right": (named in planted or any((f.effect, c) in planted
                                               for c in f.indistinguishable_from))
@@ -97,7 +100,9 @@ def main() -> int:
                 print(f"{row['case']:<60} seed {row['seed']:>4}  named {row['named'] or '—':<42}"
                       f" conf {row['confidence'] if row['confidence'] is not None else '—':>5}"
                       f"  right {row['right']}  fell back {row['fell_back']}/{row['refits']}"
-                      f"  {row['wall_s']:.0f} s", flush=True)
+                      f"  {row['wall_s']:.0f} s"
+                      + (f"  not ruled out: {row['not_ruled_out']}" if row["not_ruled_out"]
+                         else ""), flush=True)
     df = pd.DataFrame(rows)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(args.out, index=False)

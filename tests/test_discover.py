@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from discovery_cases import assert_first_finding, run_case
+from scipy.stats import chi2
 
 import mbst.discovery.extension as extension_mod
 import mbst.discovery.pipeline as pipeline_mod
@@ -171,7 +172,7 @@ def test_discover_outputs_carry_the_findings(backlash, tmp_path):
     limit = rp.detection_limit()
     assert limit.multiple < 1.0 and limit.share >= result.settings.min_relative_gain
     smaller = [s for s in rp.sizes if s.multiple < limit.multiple]
-    assert all(not s.clears(result.settings.min_relative_gain, result.settings.min_aic_drop)
+    assert all(not s.clears(result.settings.min_relative_gain, rp.aic_drop_needed)
                for s in smaller)
     deg = np.degrees(limit.values["width_rad"])
     bound = "at or below" if limit is rp.sizes[0] else "from"
@@ -502,8 +503,12 @@ def test_bootstrap_confidence_drops_when_one_stretch_carries_the_winner():
     at_noise = _TableScorer(table, float(spread.sum()))  # what spread leaves is noise
     weak = acceptance.ranking_bootstrap(at_noise, cands[0], cands, 0.1)
     assert weak["wins_share"] < 0.7 and weak["confidence"] < 0.7, weak
+    # the rival the resamples often prefer is named beside the winner
+    assert [a["key"] for a in weak["alternatives"]] == ["stribeck_friction:rack"], weak
+    assert weak["alternatives"][0]["winner_better_share"] == pytest.approx(weak["wins_share"])
     strong = acceptance.ranking_bootstrap(at_noise, cands[1], cands[1:], 0.1)
     assert strong["confidence"] == 1.0, strong
+    assert strong["alternatives"] == []
     # determinism: the same seed gives the same answer
     assert acceptance.ranking_bootstrap(at_noise, cands[0], cands, 0.1) == weak
     # the same winner where the noise floor lies far below: it explains 30 % of the
@@ -511,3 +516,30 @@ def test_bootstrap_confidence_drops_when_one_stretch_carries_the_winner():
     partly = acceptance.ranking_bootstrap(_TableScorer(table, 0.0), cands[1], cands[1:], 0.1)
     assert partly["wins_share"] == 1.0
     assert partly["confidence"] == pytest.approx(0.3, abs=1e-6)
+
+
+def test_significance_margin_holds_its_false_alarm_rate():
+    """Issue #30: the significance margin comes from the campaign's effective samples,
+    not from a constant fitted to the demo. On pure noise, 25 candidates of one
+    parameter each (random regressors, as a catalogue's effects are to a residual they
+    do not explain) clear it in about ``FALSE_ALARM_RATE`` of campaigns; one real effect
+    of 5 % of the cost on 500 samples clears it nearly always."""
+    rng = np.random.default_rng(3)
+    n, m, trials = 500, 25, 2000
+    drop = acceptance.aic_drop_needed(1, m)
+    assert drop == pytest.approx(chi2.isf(acceptance.FALSE_ALARM_RATE / m, 1) - 2.0)
+    assert acceptance.aic_drop_needed(1, m, min_aic_drop=30.0) == 30.0
+    assert acceptance.aic_drop_needed(2, m) > drop  # more parameters, more evidence needed
+
+    def best_aic_delta(effect: float) -> float:
+        e = rng.standard_normal(n)
+        x = rng.standard_normal((m, n))
+        e = e + effect * x[0]
+        proj = (x @ e) / np.einsum("ij,ij->i", x, x)
+        cost = np.sum((e - proj[:, None] * x) ** 2, axis=1)
+        return float(np.min(n * np.log(cost / np.sum(e * e)) + 2.0))
+
+    false_alarms = np.mean([best_aic_delta(0.0) <= -drop for _ in range(trials)])
+    assert false_alarms <= 2 * acceptance.FALSE_ALARM_RATE, false_alarms
+    found = np.mean([best_aic_delta(0.23) <= -drop for _ in range(200)])  # ≈ 5 % gain
+    assert found >= 0.9, found

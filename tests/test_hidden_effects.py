@@ -97,8 +97,10 @@ def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
                       if stage_for(e, {"blocked_column", "free_tie_rods"}, EPS_MODEL)}
     unresolved = {k for k in tested if not resolution[k].resolved_at_realistic_size}
     assert unresolved == set(KNOWN_MISSES), {k: resolution[k].size_at(1.0) for k in unresolved}
-    # ... and column Stribeck, which the sweep names from a ratio of 3, at a larger size
-    assert resolution["stribeck_friction:steering_column"].resolved_from in (3.0, 4.0)
+    # ... and column Stribeck, at a larger size: with the campaign's own significance
+    # margin the sweep names it from a ratio of 2.6, 2x its realistic size (12.8 % of the
+    # stage, ΔAIC −29; measured 2026-11-25), where the fixed ΔAIC ≤ −100 needed a ratio of 3
+    assert resolution["stribeck_friction:steering_column"].resolved_from in (2.0, 3.0)
 
 
 @pytest.mark.parametrize("key", [

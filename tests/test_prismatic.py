@@ -194,7 +194,7 @@ def emps(tmp_path_factory):
         pytest.skip(f"EMPS benchmark files not at {EMPS_DIR}")
     out = tmp_path_factory.mktemp("emps")
     camp = read_campaign(import_emps(EMPS_DIR, out / "campaign"))
-    res = run_discover(camp, out / "discover", DiscoverSettings(min_aic_drop=30.0))
+    res = run_discover(camp, out / "discover", DiscoverSettings())
     return camp, res, out / "discover"
 
 

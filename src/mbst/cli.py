@@ -113,7 +113,7 @@ def _cmd_discover(args: argparse.Namespace) -> int:
         raise UsageError(f"--max-effects must be ≥ 0, got {args.max_effects}")
     if not 0 < args.min_gain < 1:
         raise UsageError(f"--min-gain must be in (0, 1), got {args.min_gain}")
-    if args.min_aic_drop < 0:
+    if args.min_aic_drop is not None and args.min_aic_drop < 0:
         raise UsageError(f"--min-aic-drop must be ≥ 0, got {args.min_aic_drop}")
     settings = DiscoverSettings(
         identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
@@ -272,12 +272,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--joint", action="store_true",
                    help="the base model's cascade ends with a joint refit, as `identify --joint`")
     p.add_argument("--multistart", type=int, default=2, help="starts per cascade stage")
-    p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
+    p.add_argument("--max-effects", type=int, default=4,
+                   help="most effects to add (default 4); rounds stop earlier when the best "
+                   "candidate left does not clear the margins")
     p.add_argument("--min-gain", type=float, default=0.10,
                    help="share of a stage's residual cost an effect must remove (default 0.10)")
-    p.add_argument("--min-aic-drop", type=float, default=100.0,
-                   help="ΔAIC an effect must reach, as −value (default 100, calibrated on "
-                   "the EPS bench)")
+    p.add_argument("--min-aic-drop", type=float, default=None,
+                   help="ΔAIC an effect must reach, as −value (default: from the campaign, "
+                   "the likelihood-ratio test with its effective samples at a 1 %% "
+                   "false-alarm rate over the catalogue)")
     p.add_argument("--no-sparse", action="store_true", help="skip the sparse regression")
     p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
     p.add_argument("--no-stick-slip", action="store_true",

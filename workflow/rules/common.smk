@@ -101,13 +101,19 @@ def discover_skip_args(wildcards):
 
 
 def discover_setting(name):
-    """A discover margin: the campaign's own override, else the global value."""
+    """A discover setting: the campaign's own (max_effects only), else the global value."""
 
     def get(wildcards):
         own = campaign_entry(wildcards).get("discover", {})
-        return own.get(name, config["discover"][name])
+        return own.get(name, config["discover"].get(name))
 
     return get
+
+
+def aic_margin_arg(wildcards):
+    """``--min-aic-drop`` when the config sets one; else discovery derives it per campaign."""
+    drop = config["discover"].get("min_aic_drop")
+    return "" if drop is None else f"--min-aic-drop {drop}"
 
 
 def discover_outputs():

@@ -52,7 +52,7 @@ rule discover:
         joint="--joint" if config["identify"].get("joint_refinement") else "",
         max_effects=discover_setting("max_effects"),
         min_gain=discover_setting("min_relative_gain"),
-        min_aic_drop=discover_setting("min_aic_drop"),
+        aic_margin=aic_margin_arg,
         skip=discover_skip_args,
         code=CODE_VERSION,
     conda:
@@ -64,7 +64,7 @@ rule discover:
         " mbst discover {params.campaign_dir:q} --out {params.tmpdir:q} --quiet"
         " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart} {params.joint}"
         " --max-effects {params.max_effects} --min-gain {params.min_gain}"
-        " --min-aic-drop {params.min_aic_drop} {params.skip}"
+        " {params.aic_margin} {params.skip}"
         " > {log:q} 2>&1"
         " && rm -rf {params.outdir:q}"
         " && mv {params.tmpdir:q} {params.outdir:q}"

@@ -91,6 +91,9 @@ class DiscoveryResult:
             where = " or ".join([f.component, *f.indistinguishable_from])
             lines.append(f"  found {f.effect} in {where} ({pars}), confidence "
                          f"{f.confidence:.2f}")
+            if f.alternatives:
+                lines.append("    not ruled out: " + ", ".join(
+                    f"{a['effect']} in {a['component']}" for a in f.alternatives))
         blind = [r.key for r in self.resolution if r.sizes and not r.resolved_at_realistic_size]
         if blind:
             lines.append("  these tests would not show at their realistic size: "

@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from mbst.core.model import ModelDefinition
+from mbst.discovery.acceptance import FALSE_ALARM_RATE
 from mbst.discovery.pipeline import FORMAT, DiscoverSettings, DiscoveryResult, discover
 from mbst.discovery.residuals import dominant_regions
 from mbst.discovery.rounds.resolution import Resolution
@@ -50,7 +51,9 @@ def discovery_record(result: DiscoveryResult) -> dict:
                      "control_fit_percent": _control_fit(result.comparison, "extended")},
         "gain": result.gain,
         "acceptance": {"min_relative_gain": result.settings.min_relative_gain,
+                       # None: from the campaign (each round's ``aic_drop_needed``)
                        "min_aic_drop": result.settings.min_aic_drop,
+                       "false_alarm_rate": FALSE_ALARM_RATE,
                        "max_effects": result.settings.max_effects},
         "rounds": result.rounds,
         "residual_regions": dominant_regions(result.locations, 0.0)[:8],
@@ -150,7 +153,8 @@ def markdown_summary(result: DiscoveryResult) -> str:
         for i, f in enumerate(result.findings, 1):
             pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
             where = " or ".join([f.component, *f.indistinguishable_from])
-            lines.append(f"| {i} | {f.effect} | {where} | {pars} | {f.confidence:.2f} |")
+            alt = "".join(f" (or {a['effect']} in {a['component']}?)" for a in f.alternatives)
+            lines.append(f"| {i} | {f.effect}{alt} | {where} | {pars} | {f.confidence:.2f} |")
         lines += [""] + [f"- **{f.effect} / {f.component}**: {f.evidence}"
                          for f in result.findings]
     else:
@@ -204,7 +208,7 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
              "without, less what the stage's parameters absorb; `resolution.csv`), and the "
              "smallest size tried (0.1× to 4× the realistic size) that clears the margins — "
              f"the detection limit of these tests ({100 * st.min_relative_gain:.0f} % and "
-             f"ΔAIC ≤ −{st.min_aic_drop:.0f}). An estimate: a pair marked *not resolved* can "
+             f"{figures.aic_margin_text(result)}). An estimate: a pair marked *not resolved* can "
              "be in the rig without any finding here; longer or other tests would be needed "
              "(figure: `figures/resolution.png`).",
              "", "| effect | component | stage | share at realistic size | ΔAIC | "

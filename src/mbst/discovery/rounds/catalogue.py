@@ -52,7 +52,9 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
         return None
     best = scores[0]
     settings = state.settings
-    short = acceptance.margin_shortfall(best, settings.min_relative_gain, settings.min_aic_drop)
+    drop = _aic_drop(state, best.k_effect)
+    rec["aic_drop_needed"] = round(drop, 2)
+    short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop)
     if short is not None:
         rec["reason"] = short
         return None
@@ -81,7 +83,16 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
                                     acceptance.akaike_weight(best, scores), ties, boot))
     # an effect that did not help the base model does not start to once another is added
     return {s.key for s in scores[1:]
-            if acceptance.shows_evidence(s, settings.min_relative_gain, settings.min_aic_drop)}
+            if acceptance.shows_evidence(s, settings.min_relative_gain,
+                                         _aic_drop(state, s.k_effect))}
+
+
+def _aic_drop(state: DiscoveryState, k: int) -> float:
+    """The significance margin of an effect with ``k`` parameters (``acceptance``): every
+    catalogue pair counts as a candidate, the ones a later round no longer rescores too,
+    as the data chose which those are."""
+    return acceptance.aic_drop_needed(k, len(state.model.catalogue),
+                                      state.settings.min_aic_drop)
 
 
 def _screen(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
@@ -158,6 +169,7 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
                                proposal.ties, proposal.bootstrap),
         stage=best.stage, relative_gain=best.relative_gain, aic_delta=best.aic_delta, cv=cv,
         indistinguishable_from=[s.component for s, _ in proposal.ties],
+        alternatives=list(proposal.bootstrap.get("alternatives", [])),
     )
 
 
@@ -185,6 +197,13 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
                      f"{100 * bootstrap['wins_share']:.0f} % of {bootstrap['resamples']} "
                      f"resamples of the stage's data (gain {100 * lo:.1f}–{100 * hi:.1f} %, "
                      f"5–95 %)")
+        for alt in bootstrap.get("alternatives", []):
+            parts.append(
+                f"NOT RULED OUT: {alt['effect']} in {alt['component']} removed "
+                f"{100 * alt['relative_gain']:.1f} %, and {best.effect} in {best.component} "
+                f"is the better of the two in only {100 * alt['winner_better_share']:.0f} % "
+                "of the resamples: both explain much the same residual, and these tests do "
+                "not separate them")
         explained = bootstrap["explained_above_noise"]
         if explained < 0.8:
             parts.append(f"PARTLY EXPLAINED: it removes {100 * explained:.0f} % of the stage's "
