@@ -55,7 +55,7 @@ def main() -> None:
         camp = read_campaign(import_emps(data, Path(tmp) / "emps"))
         t_import = time.perf_counter() - t0
         t0 = time.perf_counter()
-        res = discover(camp, DiscoverSettings(min_aic_drop=30.0, max_effects=3))
+        res = discover(camp, DiscoverSettings())
         t_disc = time.perf_counter() - t0
         print(f"import {t_import:.1f} s, discover {t_disc:.1f} s; findings: "
               + (", ".join(f"{f.effect}:{f.component} {f.parameters}" for f in res.findings)

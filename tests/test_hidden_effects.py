@@ -202,3 +202,31 @@ def test_issue_34_effects_are_named_on_a_drawn_rig(tmp_path_factory, planted):
         return
     f = result.findings[0]
     assert (f.effect, f.component) == tuple(key.split(":")), f.evidence
+
+
+@pytest.mark.slow  # ~140 s
+@pytest.mark.parametrize("planted", ["backlash:worm_gear", "backlash:worm_gear:width_rad=0.007"])
+def test_realistic_worm_gear_backlash_is_named_or_below_the_limit(tmp_path_factory, planted):
+    """Issue #30: a worm-gear backlash on a rig that is not the model (drawn rig, inertias
+    known 10 % off, AR(1) noise, quantisation, a torque-sensor lag, the bench's own
+    integrator). The drawn 0.67° was named presliding hysteresis in the motor (its
+    candidate's refit stuck at 0.13° from the catalogue's 2° start). Now: backlash in the
+    worm gear with its width — or, at a production 0.4°, no finding with the resolution
+    step putting the size below what these tests resolve. Never another effect."""
+    out = tmp_path_factory.mktemp("realistic")
+    recipe = BenchRecipe(effects=[planted], seed=100, plan=compact_plan(),
+                         realism=BenchRealism.realistic())
+    camp = read_campaign(run_bench(out, recipe))
+    truth = json.loads((out / "truth.json").read_text())
+    result = discover(camp, DiscoverSettings(**SETTINGS))
+    true_w = truth["effects"][0]["parameters"]["width_rad"]
+    if not result.findings:
+        limit = next(r for r in result.resolution if r.key == "backlash:worm_gear"
+                     ).detection_limit()
+        assert limit is None or limit.values["width_rad"] > true_w, limit
+        return
+    f = result.findings[0]
+    assert (f.effect, f.component) == ("backlash", "worm_gear"), f.evidence
+    # measured 2026-11-25: 0.82° for 0.67°, 0.56° for a production 0.40° (the sensor lag
+    # and the rest the bench adds leave a floor the gap's width trades against)
+    assert f.parameters["width_rad"] == pytest.approx(true_w, rel=0.3 if true_w > 0.01 else 0.5)
