@@ -4,7 +4,7 @@ Two margins judge a winner. Its *relevance*, the share of its stage's residual c
 removes (``min_relative_gain``, a setting: the smallest effect worth naming), and its
 *significance*, read from the campaign itself: the likelihood-ratio statistic with the
 effective sample count of the coloured residual must pass the chi-square quantile at
-the false-alarm rate ``FALSE_ALARM_RATE`` shared by every candidate the round scored
+the false-alarm rate ``FALSE_ALARM_RATE`` shared by every pair of the catalogue
 (``aic_drop_needed``). ``min_aic_drop`` set by hand replaces the latter. This module
 holds the rules that apply them and the constants that tell look-alikes apart, each
 with the measurement behind it.
@@ -33,8 +33,8 @@ TIE_GAIN = 0.01
 # is rescored in the next one; one that does not is not tried again.
 EVIDENCE_SHARE_OF_MARGIN = 0.5
 # The chance that a round names an effect for a campaign whose base model is right and
-# whose residual is the noise it measured: shared among the candidates the round scored
-# (Bonferroni), so a campaign with more candidates needs more evidence for each.
+# whose residual is the noise it measured: shared among the catalogue's pairs
+# (Bonferroni), so a family with more candidates needs more evidence for each.
 FALSE_ALARM_RATE = 0.01
 
 

@@ -334,20 +334,7 @@ class StageScorer:
             grid_best = grid[int(order[0])]
             grid_gain = 1.0 - float(grid_cost[order[0]]) / cost_base if cost_base > 0 else 0.0
             if self.reset:
-                # the handbook start: compensating parameters at their typical values and
-                # the effect at the grid's size that fits best from there. (Its level says
-                # little, as the rest of the stage must move with the effect before the
-                # cost drops, but where it is lowest does: a 0.67° worm-gear backlash on a
-                # realistic bench refitted from the catalogue's 2° to 2.1° and +89 % of
-                # the stage cost, from the grid's 0.5° to 0.72° and −51 %.)
-                handbook = self.handbook_start(p_base, spec)
-                hb_rows, hb_cost = self._grid(handbook, grid)
-                starts.append(hb_rows[int(np.argmin(hb_cost))])
-                if _several_basins(spec) and not np.array_equal(starts[-1], handbook):
-                    # that cost is nearly flat over a gap's width (16.9-17.4x the base on
-                    # a realistic rig): a 1.29° gear refitted from the grid's 1° to 0.41°
-                    # and -19 %, from the catalogue's 2° to 1.26° and -87 %
-                    starts.append(handbook)
+                starts += self._handbook_starts(p_base, spec, grid)
         else:
             starts = [start.params]
             grid_best, grid_gain = start.grid_best, start.grid_gain
@@ -402,6 +389,26 @@ class StageScorer:
             fell_back=fell_back, status=fr.status, n_diverged=fr.n_diverged,
             cost_refit=refit_cost,
         )
+
+    def _handbook_starts(self, p_base: np.ndarray, spec: EffectSpec,
+                         grid: list[dict[str, float]]) -> list[np.ndarray]:
+        """The handbook start: compensating parameters at their typical values and the
+        effect at the grid's size that fits best from there.
+
+        (Its level says little, as the rest of the stage must move with the effect
+        before the cost drops, but where it is lowest does: a 0.67° worm-gear backlash on
+        a realistic bench refitted from the catalogue's 2° to 2.1° and +89 % of the stage
+        cost, from the grid's 0.5° to 0.72° and −51 %.)
+        """
+        handbook = self.handbook_start(p_base, spec)
+        rows, cost = self._grid(handbook, grid)
+        starts = [rows[int(np.argmin(cost))]]
+        if _several_basins(spec) and not np.array_equal(starts[0], handbook):
+            # that cost is nearly flat over a gap's width (16.9-17.4x the base on a
+            # realistic rig): a 1.29° gear refitted from the grid's 1° to 0.41° and −19 %,
+            # from the catalogue's 2° to 1.26° and −87 %
+            starts.append(handbook)
+        return starts
 
     def _grid(self, p: np.ndarray, grid: list[dict[str, float]]
               ) -> tuple[np.ndarray, np.ndarray]:
