@@ -147,16 +147,25 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from mbst.systems.prismatic.importer import import_emps
-
-    if args.format != "emps":
-        raise UsageError(f"unknown format '{args.format}' (known: emps)")
     if Path(args.out).exists() and not args.overwrite:
         raise UsageError(f"{args.out} already exists; pass --overwrite to replace it")
-    camp = import_emps(args.data_dir, args.out, overwrite=args.overwrite)
+    if args.format == "emps":
+        from mbst.systems.prismatic.importer import import_emps
+
+        if args.control is not None:
+            raise UsageError("--control applies to friction-damper; EMPS has one control run")
+        camp = import_emps(args.data_dir, args.out, overwrite=args.overwrite)
+        what = ("system prismatic-axis; DATA_EMPS for identification, DATA_EMPS_PULSES as "
+                "the held-out control")
+    else:
+        from mbst.systems.friction_damper.importer import import_friction_damper
+
+        camp = import_friction_damper(args.data_dir, args.out, control=args.control,
+                                      overwrite=args.overwrite)
+        what = ("system friction-damper; " + (f"tests matching {args.control!r}" if args.control
+                else "the earthquake tests") + " as the held-out controls")
     if not args.quiet:
-        print(f"wrote {camp} (system prismatic-axis; DATA_EMPS for identification, "
-              "DATA_EMPS_PULSES as the held-out control)")
+        print(f"wrote {camp} ({what})")
     return 0
 
 
@@ -303,8 +312,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_plan)
 
     p = add("import", "convert a public benchmark's files into a campaign")
-    p.add_argument("format", choices=["emps"], help="emps: the EMPS prismatic-axis benchmark")
-    p.add_argument("data_dir", help="folder with DATA_EMPS.mat and DATA_EMPS_PULSES.mat")
+    p.add_argument("format", choices=["emps", "friction-damper"],
+                   help="emps: the EMPS prismatic-axis benchmark; friction-damper: the banded "
+                   "rotary friction damper data set")
+    p.add_argument("data_dir", help="emps: folder with DATA_EMPS.mat and DATA_EMPS_PULSES.mat; "
+                   "friction-damper: folder with characterization/, earthquake/, published/")
+    p.add_argument("--control", default=None, metavar="GLOB",
+                   help="friction-damper: file names (glob, e.g. '1Hz*') of the held-out "
+                   "control tests (default: the earthquake tests)")
     p.add_argument("--out", required=True, help="campaign folder to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing campaign")
     p.set_defaults(func=_cmd_import)

@@ -91,7 +91,8 @@ def get_system(name: str) -> SystemFamily:
 # The built-in families, by the module that registers each. Loaded by name, on first
 # use, so that the core never imports a family (reading a campaign does not compile
 # a simulator) and a new family is one line here plus its own subpackage.
-BUILTIN_FAMILIES = ("mbst.systems.eps.channels", "mbst.systems.prismatic.channels")
+BUILTIN_FAMILIES = ("mbst.systems.eps.channels", "mbst.systems.prismatic.channels",
+                    "mbst.systems.friction_damper.channels")
 
 
 def _load_builtin() -> None:

@@ -10,7 +10,7 @@ import numpy as np
 from mbst.discovery.acceptance import FALSE_ALARM_RATE
 from mbst.discovery.rounds import equation_error, stickslip
 from mbst.report import plots
-from mbst.report.plots import LABELS, MODEL_STYLE, SCALE, motion_reversals, plt
+from mbst.report.plots import MODEL_STYLE, SCALE, label_of, motion_reversals, plt
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
             # a solid, pale marker: the true model is drawn dotted grey
             ax.axvline(pt.time_s[worst], color="tab:blue", alpha=0.35, lw=0.8,
                        label="reversal")
-            plots._style(ax, f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", LABELS[ch])
+            plots._style(ax, f"{pt.id}: reversal at {pt.time_s[worst]:.2f} s", label_of(ch))
     plots._finish(fig, axes, path)
 
 
@@ -209,12 +209,12 @@ def stick_slip(result, path: Path) -> bool:
         axes[0].plot(pt.time_s, s * hp(y), label=name, **MODEL_STYLE.get(name, {}))
         axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(y, pt.dt_s) + pn),
                      label=f"{name} + sensor noise", **MODEL_STYLE.get(name, {}))
-    plots._style(axes[0], f"{pt.id}: {LABELS[ch]} above {stickslip.HIGHPASS_HZ:g} Hz "
+    plots._style(axes[0], f"{pt.id}: {label_of(ch)} above {stickslip.HIGHPASS_HZ:g} Hz "
                  "(where a stick-slip sawtooth shows; its phase is not repeatable)",
-                 LABELS[ch], "")
+                 label_of(ch), "")
     verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
     plots._style(axes[1], f"envelope over {stickslip.WINDOW_S:g} s: what the stick-slip test "
-                 f"compares ({stage}, {verdict})", f"rms {LABELS[ch]}")
+                 f"compares ({stage}, {verdict})", f"rms {label_of(ch)}")
     for ax in axes:
         ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()

@@ -24,8 +24,16 @@ LABELS = {
     "motor_force_n": "motor force [N]",
     "steering_angle_rad": "steering angle [rad]",
     "position_reference_m": "position reference [mm]",
+    "displacement_m": "displacement [mm]",
+    "friction_force_n": "friction force [kN]",
 }
-SCALE = {"rack_position_m": 1e3, "position_m": 1e3, "position_reference_m": 1e3}
+SCALE = {"rack_position_m": 1e3, "position_m": 1e3, "position_reference_m": 1e3,
+         "displacement_m": 1e3, "friction_force_n": 1e-3}
+
+
+def label_of(channel: str) -> str:
+    """The axis label of a channel (its name where the table has none)."""
+    return LABELS.get(channel, channel)
 MODEL_STYLE = {
     "base": dict(color="tab:red", lw=1.1, ls="--"),
     "extended": dict(color="tab:green", lw=1.1, ls="-"),
@@ -62,6 +70,7 @@ def _channel_grid(tests: list[PreparedTest], row_height: float):
     cells of channels a test does not have are blanked.
     """
     chans = [c for c in LABELS if any(c in pt.measured for pt in tests)]
+    chans += sorted({c for pt in tests for c in pt.measured} - set(chans))
     chans = [c for c in chans if c != "tie_rod_force_right_n"] or chans
     fig, axes = plt.subplots(len(tests), len(chans),
                              figsize=(4.2 * len(chans), row_height * len(tests)), squeeze=False)
@@ -85,7 +94,7 @@ def time_histories(tests: list[PreparedTest], models: dict[str, dict], path: Pat
         for name, twins in models.items():
             if pt.id in twins and ch in twins[pt.id]:
                 ax.plot(pt.time_s, s * twins[pt.id][ch], label=name, **MODEL_STYLE.get(name, {}))
-        _style(ax, f"{pt.id} ({pt.spec.role})", LABELS[ch])
+        _style(ax, f"{pt.id} ({pt.spec.role})", label_of(ch))
     _finish(fig, axes, path)
 
 
@@ -147,7 +156,7 @@ def residuals(tests: list[PreparedTest], models: dict[str, dict], path: Path) ->
                         **{**MODEL_STYLE.get(name, {}), "ls": "-"})
         for r in motion_reversals(pt.omega_rad_per_s):
             ax.axvline(pt.time_s[r], color="0.8", lw=0.6, zorder=0)
-        _style(ax, f"{pt.id}: residual", LABELS[ch], "time [s] (grey: motion reversals)")
+        _style(ax, f"{pt.id}: residual", label_of(ch), "time [s] (grey: motion reversals)")
     _finish(fig, axes, path)
 
 

@@ -1,0 +1,1 @@
+"""Banded rotary friction damper: imposed displacement, measured friction force."""

@@ -1,0 +1,166 @@
+"""Converter from the published friction-damper data set to an mbst campaign.
+
+``import_friction_damper``: the banded rotary friction device of Coble et al.
+(ARTS Lab, CC BY-SA 4.0; shared/data/real/friction-damper/README.md) → a
+``friction-damper`` campaign, one test per JSON file. Units are converted to
+SI after the unit names the file declares are checked. Characterization
+(sine) tests identify, earthquake tests are held-out controls unless
+``control`` (a glob over file names) picks others. The makers' LuGre
+predictions (``published/lugre_<test>.csv``), where present, are scored
+against the measured force over their window and written with the test, so
+that ``benchmark.json`` can set the extended model beside them.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import hashlib
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mbst.io.campaign import CampaignError, TestSpec, write_campaign
+from mbst.systems.friction_damper.channels import SYSTEM_NAME
+
+INCH_M = 0.0254
+KIP_N = 4448.2216152605
+LB_N = 4.4482216152605
+# the file's columns, and the unit each must declare (key in the file: unit name)
+COLUMNS = (("time_s", "time units", "s", 1.0),
+           ("displacement_m", "displacement units", "in", INCH_M),
+           ("friction_force_n", "friction force units", "kip", KIP_N),
+           ("velocity_m_per_s", None, None, INCH_M),  # in/s, follows the displacement
+           ("actuator_force_1_n", "actuator force units", "lb", LB_N),
+           ("actuator_force_2_n", "actuator force units", "lb", LB_N))
+SINE_NAME = re.compile(r"(?P<f>[\d.]+)Hz(?P<t>[\d.]+)lbtension(?P<a>[\d.]+)amplitude$")
+DEFAULT_GROUPS = (("characterization", "identification"), ("earthquake", "control"))
+
+
+def test_id_of(stem: str) -> str:
+    """A file-safe test id: the file's stem with its decimal points written ``p``."""
+    return stem.replace(".", "p")
+
+
+def _read(path: Path, campaign: str) -> pd.DataFrame:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CampaignError(f"cannot read as JSON ({exc})", campaign=campaign, path=path) from None
+    if not isinstance(doc, dict) or "data" not in doc:
+        raise CampaignError("no 'data' matrix", campaign=campaign, path=path)
+    for _col, key, unit, _scale in COLUMNS:
+        if key is not None and doc.get(key) != unit:
+            raise CampaignError(f"'{key}' is {doc.get(key)!r}, expected '{unit}'",
+                                campaign=campaign, path=path)
+    try:
+        data = np.asarray(doc["data"], dtype=float)
+    except (TypeError, ValueError):
+        raise CampaignError("'data' is not a numeric matrix", campaign=campaign,
+                            path=path) from None
+    if data.ndim != 2 or data.shape[1] < 3 or len(data) < 10:
+        raise CampaignError(f"'data' has shape {data.shape}, expected rows × (time, "
+                            "displacement, force, ...)", campaign=campaign, path=path)
+    cols = {}
+    for j, (col, _key, _unit, scale) in enumerate(COLUMNS[:data.shape[1]]):
+        bad = np.flatnonzero(~np.isfinite(data[:, j]))
+        if bad.size:
+            raise CampaignError(f"column {j + 1} ({col}) is not finite", campaign=campaign,
+                                path=path, row=int(bad[0]) + 1)
+        cols[col] = data[:, j] * scale
+    return pd.DataFrame(cols)
+
+
+def _input_of(stem: str, group: str) -> dict:
+    m = SINE_NAME.match(stem)
+    if m:
+        return {"kind": "sine", "frequency_hz": float(m["f"]),
+                "amplitude_m": round(float(m["a"]) * INCH_M, 6),
+                "band_tension_n": round(float(m["t"]) * LB_N, 3)}
+    return {"kind": "recorded", "source": f"{group}/{stem}.json"}
+
+
+def _published(data_dir: Path, stem: str, force_n: np.ndarray, campaign: str) -> dict | None:
+    """The makers' LuGre prediction scored on its window (None when not published)."""
+    path = data_dir / "published" / f"lugre_{stem}.csv"
+    if not path.is_file():
+        return None
+    lug = pd.read_csv(path)
+    if not {"sample_index", "lugre_force_n"} <= set(lug.columns):
+        raise CampaignError("expected columns sample_index, lugre_force_n", campaign=campaign,
+                            path=path)
+    idx = lug["sample_index"].to_numpy(int)
+    if idx.min() < 0 or idx.max() >= len(force_n) or np.any(np.diff(idx) != 1):
+        raise CampaignError("sample_index is not a contiguous window of the test",
+                            campaign=campaign, path=path)
+    y, yh = force_n[idx], lug["lugre_force_n"].to_numpy(float)
+    rmse = float(np.sqrt(np.mean((y - yh) ** 2)))
+    return {"model": "LuGre (the data set's makers)", "source": f"published/{path.name}",
+            "window_samples": [int(idx[0]), int(idx[-1])],
+            "fit_percent": round(float(100 * (1 - np.linalg.norm(y - yh)
+                                                  / np.linalg.norm(y - y.mean()))), 3),
+            "rmse_n": round(rmse, 3), "nrmse": round(rmse / float(np.ptp(y)), 5)}
+
+
+def _files(data_dir: Path, campaign: str) -> list[tuple[Path, str]]:
+    files = [(p, group) for group, _role in DEFAULT_GROUPS
+             for p in sorted((data_dir / group).glob("*.json"))]
+    if not files:
+        raise CampaignError("no test files (characterization/*.json, earthquake/*.json)",
+                            campaign=campaign, path=data_dir)
+    return files
+
+
+def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
+                           control: str | None = None, overwrite: bool = False) -> Path:
+    """Write the friction-damper data set as a ``friction-damper`` campaign in ``out_dir``.
+
+    Parameters
+    ----------
+    data_dir
+        Folder with ``characterization/*.json``, ``earthquake/*.json`` and optionally
+        ``published/lugre_*.csv``.
+    out_dir
+        The campaign directory to create (atomically).
+    control
+        A glob over file stems (e.g. ``'1Hz*'``): those tests are the controls and
+        every other test identifies. Default: the earthquake tests are the controls.
+    overwrite
+        Replace an existing campaign.
+    """
+    name = "friction-damper"
+    data_dir = Path(data_dir)
+    roles = dict(DEFAULT_GROUPS)
+    tests, seen = [], {}
+    for path, group in _files(data_dir, name):
+        frame = _read(path, name)
+        digest = hashlib.sha256(frame[["displacement_m", "friction_force_n"]]
+                                .to_numpy().tobytes()).hexdigest()
+        if digest in seen:
+            raise CampaignError(f"holds the same data as {seen[digest]}: one label is wrong; "
+                                "remove one of the two files", campaign=name, path=path)
+        seen[digest] = path
+        stem = path.stem
+        role = roles[group] if control is None else (
+            "control" if fnmatch.fnmatch(stem, control) else "identification")
+        spec = TestSpec(id=test_id_of(stem), file="", scenario="imposed_displacement",
+                        input=_input_of(stem, group), motor="actuator", role=role)
+        pub = _published(data_dir, stem, frame["friction_force_n"].to_numpy(), name)
+        if pub is not None:
+            spec.extra["published"] = pub
+        tests.append((spec, frame))
+    if not any(s.role == "control" for s, _ in tests):
+        raise CampaignError(f"no test matches --control {control!r}: nothing held out",
+                            campaign=name, path=data_dir)
+    if not any(s.role == "identification" for s, _ in tests):
+        raise CampaignError("every test is a control: nothing left to identify",
+                            campaign=name, path=data_dir)
+    return write_campaign(
+        out_dir, name=name, system=SYSTEM_NAME, known={}, tests=tests,
+        extra={"source": "Dataset-Friction-Damper-with-Backlash, Coble, Huggins, Cao, Ricles "
+                         "& Downey (ARTS Lab, University of South Carolina), CC BY-SA 4.0",
+               "notes": "SI units converted from in, kip and lb as the files declare them"},
+        overwrite=overwrite,
+    )
