@@ -18,6 +18,16 @@ def fit_percent(y: np.ndarray, y_hat: np.ndarray) -> float:
     return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / d))
 
 
+def error_scores(y: np.ndarray, y_hat: np.ndarray) -> dict[str, float]:
+    """FIT %, RMSE (in the channel's unit) and NRMSE (RMSE over the measured range), the
+    three numbers published benchmarks report."""
+    y, y_hat = np.asarray(y, float), np.asarray(y_hat, float)
+    rmse = float(np.sqrt(np.mean((y - y_hat) ** 2)))
+    span = float(np.ptp(y))
+    return {"fit_percent": fit_percent(y, y_hat), "rmse": rmse,
+            "nrmse": rmse / span if span > 0 else float("nan")}
+
+
 def correlation_row(y: np.ndarray, y_hat: np.ndarray) -> dict[str, float]:
     """FIT %, NRMSE (rms error over the measured range), Pearson r, R², max |error|."""
     y = np.asarray(y, float)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mbst.core.metrics import error_scores
 from mbst.io.campaign import CampaignError, TestSpec, write_campaign
 from mbst.systems.friction_damper.channels import SYSTEM_NAME
 
@@ -95,13 +96,11 @@ def _published(data_dir: Path, stem: str, force_n: np.ndarray, campaign: str) ->
     if idx.min() < 0 or idx.max() >= len(force_n) or np.any(np.diff(idx) != 1):
         raise CampaignError("sample_index is not a contiguous window of the test",
                             campaign=campaign, path=path)
-    y, yh = force_n[idx], lug["lugre_force_n"].to_numpy(float)
-    rmse = float(np.sqrt(np.mean((y - yh) ** 2)))
+    e = error_scores(force_n[idx], lug["lugre_force_n"].to_numpy(float))
     return {"model": "LuGre (the data set's makers)", "source": f"published/{path.name}",
             "window_samples": [int(idx[0]), int(idx[-1])],
-            "fit_percent": round(float(100 * (1 - np.linalg.norm(y - yh)
-                                                  / np.linalg.norm(y - y.mean()))), 3),
-            "rmse_n": round(rmse, 3), "nrmse": round(rmse / float(np.ptp(y)), 5)}
+            "fit_percent": round(e["fit_percent"], 3), "rmse_n": round(e["rmse"], 3),
+            "nrmse": round(e["nrmse"], 5)}
 
 
 def _files(data_dir: Path, campaign: str) -> list[tuple[Path, str]]:
