@@ -90,7 +90,7 @@ def test_extension_restores_control_fit_to_the_true_model(backlash):
 def test_discovery_record_follows_the_spec(backlash):
     _, _, result = backlash
     rec = json.loads(json.dumps(discovery_record(result)))
-    assert rec["format"] == "mbst-discovery/1"
+    assert rec["format"] == "mbst-discovery/2"
     for key in ("campaign", "base", "findings", "extended", "gain"):
         assert key in rec
     f = rec["findings"][0]

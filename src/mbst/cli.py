@@ -28,7 +28,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 # mbst bench's realism flags → BenchRealism fields
 _REALISM_FLAGS = ("draw_rig", "known_error", "draw_sizes", "noise_ar1", "quantise", "torque_lag_s",
-                  "offset_drift", "friction_drift", "oversample", "smoothing", "plan_jitter")
+                  "offset_drift", "friction_drift", "cogging_nm", "oversample", "smoothing",
+                  "plan_jitter")
 
 
 def _bench_realism(args: argparse.Namespace):
@@ -203,7 +204,11 @@ def _add_realism_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--offset-drift", type=float, metavar="RMS",
                    help="sensor offsets drift over the campaign by this many noise rms")
     g.add_argument("--friction-drift", type=float, metavar="FRACTION",
-                   help="Coulomb levels fall by this fraction as the rig warms up")
+                   help="Coulomb levels fall by this fraction as the rig warms up (not a "
+                   "catalogue effect)")
+    g.add_argument("--cogging-nm", type=float, metavar="NM",
+                   help="motor cogging: a torque ripple of this amplitude, 18 periods per "
+                   "motor revolution (not a catalogue effect)")
     g.add_argument("--oversample", type=int, metavar="K",
                    help="the bench integrates K times finer than it samples")
     g.add_argument("--smoothing", type=float, metavar="F",

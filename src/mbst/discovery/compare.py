@@ -21,6 +21,28 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
+class Learned:
+    """The unexplained round's fitted signatures: the "physics + learned" correction."""
+
+    signatures: list  # ChannelSignature, structured only
+    places: dict[str, float]  # each test's place in the campaign
+    input_name: str
+
+    def twins(self, ctrl_res: list[TestResidual]) -> dict[str, dict[str, np.ndarray]]:
+        from mbst.discovery.signature import learned_term
+
+        out = {}
+        for r in ctrl_res:
+            tw = dict(r.simulated)
+            for sig in self.signatures:
+                if sig.channel in tw:
+                    tw[sig.channel] = tw[sig.channel] + learned_term(
+                        r, sig, self.places.get(r.id, 0.0), self.input_name)
+            out[r.id] = tw
+        return out
+
+
+@dataclass
 class Comparison:
     """Control FIT % per test, channel and model family, and the twins behind it."""
 
@@ -31,8 +53,8 @@ class Comparison:
 
 
 def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
-            id_res: list[TestResidual], settings: DiscoverSettings, neural_model
-            ) -> Comparison:
+            id_res: list[TestResidual], settings: DiscoverSettings, neural_model,
+            learned: Learned | None = None) -> Comparison:
     """Control FIT % of every model family, one row per test, channel and model."""
     controls = [base.prepared[s.id] for s in campaign.control_tests()]
     rows: list[dict] = []
@@ -53,6 +75,9 @@ def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
     add("extended", ext_tw)
     ctrl_res = [residual_data(pt, base.params, base_twins[pt.id]) for pt in controls]
     failures: list[str] = []
+    if learned is not None and learned.signatures:
+        _optional("physics+learned", lambda: learned.twins(
+            [residual_data(pt, p_ext, ext_tw[pt.id]) for pt in controls]), add, failures)
     if settings.wants(base.model, "sparse"):
         _optional("sindy", lambda: _sindy_twins(id_res, ctrl_res), add, failures)
     if neural_model is not None:

@@ -77,15 +77,18 @@ class Finding:
     # other catalogue pairs the campaign does not rule out: resamples of its data
     # prefer them to this one often enough (``acceptance.ranking_bootstrap``)
     alternatives: list[dict] = field(default_factory=list)
+    # an ``unexplained`` finding's description: what the residual correlates with, where
+    signature: dict | None = None
 
     def record(self) -> dict:
-        return {"effect": self.effect, "component": self.component,
+        return {"effect": self.effect, "component": self.component or None,
                 "parameters": self.parameters, "confidence": round(self.confidence, 4),
                 "evidence": self.evidence, "stage": self.stage,
                 "relative_gain": self.relative_gain, "aic_delta": self.aic_delta,
                 "cross_validation": self.cv,
                 "indistinguishable_from": list(self.indistinguishable_from),
-                "alternatives": list(self.alternatives)}
+                "alternatives": list(self.alternatives),
+                **({"signature": self.signature} if self.signature is not None else {})}
 
 
 @dataclass
@@ -137,6 +140,11 @@ class DiscoveryState:
     proposals: list[Proposal] = field(default_factory=list)
     findings: list[Finding] = field(default_factory=list)
     resolution: list = field(default_factory=list)
+    # what the extended model's residual correlates with, per channel (rounds/unexplained.py)
+    signatures: list = field(default_factory=list)
+    extended_residuals: list[TestResidual] = field(default_factory=list)
+    # a round or method that failed on the way (reported; never the answer)
+    failures: list[str] = field(default_factory=list)
 
     @classmethod
     def start(cls, campaign: Campaign, settings: DiscoverSettings, base: IdentifyResult,

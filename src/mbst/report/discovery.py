@@ -14,6 +14,7 @@ from mbst.discovery.acceptance import FALSE_ALARM_RATE
 from mbst.discovery.pipeline import FORMAT, DiscoverSettings, DiscoveryResult, discover
 from mbst.discovery.residuals import dominant_regions
 from mbst.discovery.rounds.resolution import Resolution
+from mbst.discovery.rounds.unexplained import signature_record
 from mbst.io.campaign import Campaign
 from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.report import discovery_figures as figures
@@ -40,7 +41,9 @@ def _model_params(p: np.ndarray, effects: list[str], model: ModelDefinition
 
 def discovery_record(result: DiscoveryResult) -> dict:
     """``discovery.json`` in the format of campaign-format.md."""
-    keys = [f"{f.effect}:{f.component}" for f in result.findings]
+    # an ``unexplained`` finding adds no catalogue parameter to the extended model
+    keys = [k for f in result.findings
+            if (k := f"{f.effect}:{f.component}") in result.base.model.effects]
     return {
         "format": FORMAT,
         "campaign": result.campaign,
@@ -64,6 +67,8 @@ def discovery_record(result: DiscoveryResult) -> dict:
             for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
         },
         "resolution": [r.record() for r in result.resolution],
+        # what the extended model's residual correlates with, channel by channel
+        "unexplained": [signature_record(s) for s in result.signatures],
         "failures": list(result.failures),
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
         "wall_s": round(result.wall_s, 2),
@@ -166,6 +171,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
         if r.get("reason"):
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
     lines += untested_lines(result.rounds)
+    lines += signature_lines(result)
     if result.resolution:
         lines += resolution_lines(result)
     lines += ["", "## Control tests (held out): FIT %", ""]
@@ -180,6 +186,31 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines += benchmark_table(result.benchmark)
     lines += failure_lines(result.failures)
     return "\n".join(lines) + "\n"
+
+
+def signature_lines(result: DiscoveryResult) -> list[str]:
+    """What the extended model leaves, per channel: at the noise floor, or what it follows."""
+    if not result.signatures:
+        return []
+    lines = ["", "## What the catalogue leaves (unexplained round)", "",
+             "Each channel's residual after the extension, set against a generic library "
+             "(lags, ripples periodic in an angle, polynomials of the model's signals, drift "
+             "over the campaign): the share it predicts on held-out identification tests, "
+             "against the best of 19 phase-randomised copies of the residual (chance). "
+             "The channel's scale against its twin is taken out first and shown apart: a "
+             "known ratio or a sensor gain a little off is calibration, not an effect.", "",
+             "| channel | scale error | residual rms | sensor noise | best signature | "
+             "held-out share | chance | verdict |", "|---|---|---|---|---|---|---|---|"]
+    for sig in result.signatures:
+        best = sig.best
+        what = "—" if best is None else best.group + "".join(
+            f", {k} = {v:.4g}" for k, v in best.quantities().items())
+        verdict = ("**structure left** (see figures/unexplained.png)" if sig.structured
+                   else "at the noise floor of this library")
+        lines.append(f"| {sig.channel} | {100 * sig.gain_error:+.2f} % | {sig.residual_rms:.4g} | {sig.noise_rms:.4g} | {what} "
+                     f"| {100 * (best.cv_share if best else 0):.1f} % | "
+                     f"{100 * sig.chance_share:.1f} % | {verdict} |")
+    return lines
 
 
 def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:

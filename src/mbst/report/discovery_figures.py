@@ -222,6 +222,44 @@ def stick_slip(result, path: Path) -> bool:
     return True
 
 
+def unexplained_signature(result, path: Path) -> bool:
+    """The residual the catalogue leaves against what it correlates with, and the learned
+    term, per structured channel (an ``unexplained`` finding). Returns whether drawn."""
+    from mbst.discovery.data import residual_data
+    from mbst.discovery.signature import abscissa, learned_term
+
+    found = [s for s in result.signatures if s.structured][:3]
+    if not found:
+        return False
+    model = result.base.model
+    tests = [residual_data(result.base.prepared[r.id], result.extended_params)
+             for r in result.residual_tests]
+    places = result.places
+    fig, axes = plt.subplots(len(found), 2, figsize=(11, 3.2 * len(found)), squeeze=False)
+    for row, sig in zip(axes, found, strict=True):
+        ch = sig.channel
+        s = SCALE.get(ch, 1.0)
+        logged = [t for t in tests if ch in t.measured]
+        for t in logged:
+            x, xlabel = abscissa(t, sig.best, places.get(t.id, 0.0), model.input_quantity)
+            lt = learned_term(t, sig, places.get(t.id, 0.0), model.input_quantity)
+            row[0].plot(x[::3], s * t.residual(ch)[::3], ".", ms=1.5, color="black", alpha=0.3)
+            row[0].plot(x[::3], s * lt[::3], ".", ms=1.5, color="tab:orange", alpha=0.6)
+        worst = max(logged, key=lambda t: float(np.std(t.residual(ch))))
+        lt = learned_term(worst, sig, places.get(worst.id, 0.0), model.input_quantity)
+        row[1].plot(worst.time_s, s * worst.residual(ch), color="black", lw=0.8,
+                    label="measured − extended")
+        row[1].plot(worst.time_s, s * lt, color="tab:orange", lw=1.0, label="learned term")
+        row[1].legend(fontsize=7, loc="upper right")
+        plots._style(row[0], f"{sig.best.group}: {100 * sig.best.cv_share:.0f} % of the "
+                     f"residual held out (chance {100 * sig.chance_share:.0f} %)",
+                     f"residual {label_of(ch)}", xlabel)
+        plots._style(row[1], f"{worst.id}: residual and the learned term", label_of(ch))
+    fig.tight_layout()
+    plots.save_figure(fig, path)
+    return True
+
+
 def write_all(result, figdir: Path, failures: list[str] | None = None) -> None:
     """Every discovery figure, each on its own: one that fails is listed in ``failures``."""
     prepared = result.base.prepared
@@ -234,6 +272,7 @@ def write_all(result, figdir: Path, failures: list[str] | None = None) -> None:
         "structure_test": lambda p: structure_bars(result, p),
         "resolution": lambda p: resolution_bars(result, p),
         "stick_slip": lambda p: stick_slip(result, p),
+        "unexplained": lambda p: unexplained_signature(result, p),
         "comparison": lambda p: comparison_bars(result, p),
         "time_histories": lambda p: plots.time_histories(shown, models, p),
         "hysteresis": lambda p: plots.hysteresis_loops(shown, physics, p),

@@ -40,6 +40,7 @@ MODEL_STYLE = {
     "true": dict(color="tab:gray", lw=0.9, ls=":"),
     "sindy": dict(color="tab:purple", lw=0.9, ls="-."),
     "neural": dict(color="tab:orange", lw=0.9, ls="-."),
+    "physics+learned": dict(color="tab:olive", lw=0.9, ls="-."),
 }
 
 

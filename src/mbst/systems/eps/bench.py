@@ -323,6 +323,8 @@ class BenchRecipe:
         """The rig on the bench: parameters and sensor offsets (drawn per seed if asked)."""
         r = self.realism
         rig = draw_rig(self.seed, self.offsets) if r.draw_rig else {**self.rig, **self.offsets}
+        if r.cogging_nm:
+            rig["motor.cogging_torque_nm"] = r.cogging_nm
         return sharper_friction(rig, r.smoothing) if r.smoothing != 1.0 else rig
 
     def known(self) -> dict[str, float]:

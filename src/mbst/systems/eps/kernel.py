@@ -96,6 +96,8 @@ P_STOP = PARAM_INDEX["torsion_bar.stiffness_limit_stop.stop_angle_rad"]
 P_STOPR = PARAM_INDEX["torsion_bar.stiffness_limit_stop.stiffness_ratio"]
 P_TRF = PARAM_INDEX["tie_rods.coulomb_friction.level"]
 P_TRF_VEPS = PARAM_INDEX["tie_rods.regularisation_velocity_m_per_s"]
+P_COG_A = PARAM_INDEX["motor.cogging_torque_nm"]
+P_COG_N = PARAM_INDEX["motor.cogging_periods_per_rev"]
 P_AFAM = PARAM_INDEX["assist.family"]
 P_C1 = PARAM_INDEX["assist.c1"]
 P_C2 = PARAM_INDEX["assist.c2"]
@@ -271,6 +273,15 @@ def assist_torque(t_tb, om_sw, p):
 
 
 @njit(**_JIT)
+def cogging_torque(theta_m, p):
+    """The motor's detent torque, periodic in its angle (bench only: not in the catalogue)."""
+    a = p[P_COG_A]
+    if a == 0.0:
+        return 0.0
+    return a * math.sin(p[P_COG_N] * theta_m)
+
+
+@njit(**_JIT)
 def column_friction_along(om_sw, load, p):
     """The column's friction F_col(ω_sw) along a record (the law without a Dahl state).
 
@@ -383,7 +394,7 @@ def _loads(x, th_sw, om_sw, p, scen, mode, force, aux):
     else:
         force[0] = t_tb + t_g - r * f_tie
         force[2] = 0.0
-    force[1] = t_m - t_g / n
+    force[1] = t_m - t_g / n - cogging_torque(x[S_THM], p)
     k_w = p[P_KW] if scen == TIRES_ON_GROUND else 0.0
     force[3] = f_tie - k_w * x[S_XW]
     aux[0] = t_tb

@@ -153,6 +153,10 @@ def _build_specs() -> list[ParamSpec]:
         ParamSpec("tie_rods.coulomb_friction.level", "N", 0.0, 0.0, 2000.0, "effect", "tie_rods"),
         ParamSpec("tie_rods.regularisation_velocity_m_per_s", "m/s", 2e-5, 2e-5, 2e-5, "fixed",
                   "tie_rods"),
+        # not a catalogue effect: the bench's motor cogging (a torque ripple periodic in the
+        # motor angle), held at 0 by identification; discovery can only describe it
+        ParamSpec("motor.cogging_torque_nm", "N·m", 0.0, 0.0, 0.0, "fixed", "motor"),
+        ParamSpec("motor.cogging_periods_per_rev", "-", 18.0, 18.0, 18.0, "fixed", "motor"),
         # power assist (seed 001): A(T) = c1·T + c2·sign(T)·|T|^c3 (EPS) or c1·sign(T)·(e^|T| − 1) (HPS)
         ParamSpec("assist.family", "-", 0.0, 0.0, 1.0, "fixed", "motor"),
         ParamSpec("assist.c1", "-", 1.5, 0.0, 20.0, "base", "motor"),

@@ -30,7 +30,8 @@ FRICTION_DAMPER_MODEL = ModelDefinition(
                          "load_cell": ("imposed_displacement",)},
     hysteresis=("input", "friction_force_n", "displacement [mm]", "friction force [N]", 1e3),
     evidence_methods=(),
-    discovery_rounds=("structure", "resolution"),
+    input_quantity="displacement_m",
+    discovery_rounds=("structure", "unexplained", "resolution"),
     benchmark=benchmark_record,
 )
 

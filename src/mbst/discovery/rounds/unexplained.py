@@ -1,0 +1,194 @@
+"""The unexplained round: is what the catalogue left at the noise floor, and if not, what is it?
+
+After the catalogue rounds, the extended model's residual on the identification
+tests is set, channel by channel, against a generic library
+(``discovery/signature.py``: lags, ripples periodic in an angle, polynomials
+of the model's own signals, drift over the campaign). A channel holds
+*unexplained structure* when a group of that library predicts its residual on
+held-out tests better than any of 19 phase-randomised copies of the residual
+(its own noise colour, no tie to the motion) and the part it predicts is larger
+than the channel's sensor noise. The finding (``effect: "unexplained"``) says
+where (channels), what it is periodic in or correlates with, and its size in
+physical terms; it names no catalogue effect. The fitted signature is the
+"physics + learned" correction the control tests score.
+
+A catalogue finding whose stage's residual the same signature explains as well
+as the catalogue effect did is in doubt: its confidence is capped below ½ and
+its evidence says which signature competes with it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+
+from mbst.discovery.data import residual_data
+from mbst.discovery.signature import ChannelSignature, describe_channel, feature_names
+from mbst.discovery.state import DiscoveryState, Finding
+
+log = logging.getLogger(__name__)
+
+# the confidence of a catalogue name that an outside signature explains as well
+DOUBTED_CONFIDENCE = 0.45
+
+def reading(sig: ChannelSignature) -> str:
+    """What an engineer reads in a channel's signature, in physical terms."""
+    kind, _, quantity = sig.best.group.partition(":")
+    q = sig.best.quantities()
+    if kind == "lag":
+        return (f"{sig.channel} lags the input that drives the model by "
+                f"{1e3 * q.get('lag_s', 0.0):.1f} ms (a sensor's own filter or a delay)")
+    if kind == "periodic":
+        return (f"a ripple in {sig.channel} periodic in {quantity}, "
+                f"{q.get('periods_per_rev', 0):.0f} periods per revolution, "
+                f"{sig.explained_rms * math.sqrt(2):.3g} amplitude (locked to a rotating part)")
+    if kind == "drift":
+        return (f"the friction level in {sig.channel} changes over the campaign's running "
+                "order (the rig warming up, wear)")
+    return (f"{sig.channel} follows a polynomial in {quantity} (a gain, ratio or stiffness "
+            "that varies with it)")
+
+
+def campaign_places(state: DiscoveryState) -> dict[str, float]:
+    """Each test's place in the campaign's running order, −½ (first) … ½ (last)."""
+    ids = [s.id for s in state.campaign.tests]
+    n = max(len(ids) - 1, 1)
+    return {tid: i / n - 0.5 for i, tid in enumerate(ids)}
+
+
+def _noise_rms(state: DiscoveryState, channel: str) -> float:
+    levels = [pt.noise.get(channel, 0.0) for pt in state.ids if channel in pt.measured]
+    return float(math.sqrt(np.mean(np.square(levels)))) if levels else 0.0
+
+
+def unexplained_round(state: DiscoveryState) -> None:
+    """Describe the structure the extended model leaves; a failure here is reported and
+    never costs the catalogue's answer."""
+    t0 = time.perf_counter()
+    try:
+        _describe(state)
+    except Exception as exc:  # one round must never sink the discovery
+        log.warning("unexplained round failed: %s: %s", type(exc).__name__, exc)
+        state.failures.append(f"unexplained round: {type(exc).__name__}: {exc}")
+    state.timings["unexplained_s"] = time.perf_counter() - t0
+
+
+def _describe(state: DiscoveryState) -> None:
+    """Each channel's signature; one ``unexplained`` finding for the structured ones."""
+    tests = [residual_data(pt, state.p) for pt in state.ids]
+    state.extended_residuals = tests
+    places = campaign_places(state)
+    channels = list(dict.fromkeys(ch for t in tests for ch in t.channels))
+    signatures = []
+    for ch in channels:
+        sig = describe_channel(tests, ch, places, _noise_rms(state, ch),
+                               seed=state.settings.identify.seed,
+                               input_name=state.model.input_quantity)
+        if sig is not None:
+            signatures.append(sig)
+    state.signatures = signatures
+    found = [s for s in signatures if s.structured]
+    if found:
+        components = {p.component for p in state.model.param_specs}
+        state.findings.append(unexplained_finding(found, components))
+
+
+def signature_record(sig: ChannelSignature) -> dict:
+    """One channel's signature as discovery.json writes it."""
+    best = sig.best
+    return {
+        "channel": sig.channel, "structured": sig.structured,
+        # measured/simulated − 1 (a known ratio or a sensor gain off): calibration, no finding
+        "scale_error": sig.gain_error,
+        "residual_rms": sig.residual_rms, "noise_rms": sig.noise_rms,
+        "explained_rms": sig.explained_rms, "chance_share": sig.chance_share,
+        "p_value": sig.p_value,
+        "best": None if best is None else {
+            "group": best.group, "share_of_residual": best.cv_share, **best.quantities()},
+        "terms": _terms(best),
+        "ranking": [{"group": g.group, "share_of_residual": g.cv_share}
+                    for g in sig.ranking[:5]],
+    }
+
+
+def _terms(best) -> list[dict]:
+    """The sparse terms of the learned correction (pysindy's STLSQ), named."""
+    if best is None:
+        return []
+    names = feature_names(best)
+    return [{"term": n, "coefficient": float(c)}
+            for n, c in zip(names, best.coefficients, strict=False) if c != 0.0]
+
+
+def unexplained_finding(found: list[ChannelSignature], components: set[str]) -> Finding:
+    """One finding for the structure the catalogue leaves, led by its largest channel
+    (campaign-format.md: ``parameters`` empty, the numbers in ``signature``)."""
+    lead = max(found, key=lambda s: s.explained_rms / max(s.noise_rms, 1e-300))
+    kind, _, quantity = lead.best.group.partition(":")
+    where = ", ".join(s.channel for s in found)
+    text = (f"OUTSIDE THE CATALOGUE: the extended model leaves structure in {where} that no "
+            f"catalogue effect explains. Signature: {reading(lead)}; it predicts "
+            f"{100 * lead.best.cv_share:.0f} % of the residual on held-out tests against "
+            f"{100 * lead.chance_share:.0f} % by chance, "
+            f"{lead.explained_rms / max(lead.noise_rms, 1e-300):.1f}× the sensor noise")
+    return Finding(
+        effect="unexplained", component=_place(kind, quantity, components), parameters={},
+        confidence=1.0 - lead.p_value, evidence=text, stage=", ".join(lead.best.scenarios),
+        relative_gain=lead.best.cv_share, aic_delta=None,
+        cv={"held_out": "tests", "share_of_residual": lead.best.cv_share,
+            "chance_share": lead.chance_share},
+        signature={"kind": kind, "quantity": quantity, **lead.best.quantities(),
+                   "stages": list(lead.best.scenarios), "reading": reading(lead),
+                   "channels": [signature_record(s) for s in found]},
+    )
+
+
+def _place(kind: str, quantity: str, components: set[str]) -> str:
+    """The component a ripple is locked to (its angle's part), else '' (null: a sensor,
+    the campaign's course or a signal of several parts)."""
+    if kind != "periodic":
+        return ""
+    part = quantity.removesuffix("_angle_rad")
+    return part if part in components else next(
+        (c for c in sorted(components) if part and part in c), "")
+
+
+def doubt_catalogue_names(findings: list[Finding], state: DiscoveryState) -> None:
+    """A catalogue name is in doubt where structure outside the catalogue is left in a
+    channel of its stage and either explains that channel's base residual as well as the
+    effect did, or the extension made the channel's output error larger there (a phase-free
+    match, such as stick-slip's, to an oscillation of another cause). Its confidence is
+    capped below ½ and its evidence says which signature competes with it."""
+    found = [s for s in state.signatures if s.structured]
+    places = campaign_places(state)
+    for sig in found:
+        base = describe_channel(state.residuals, sig.channel, places, sig.noise_rms,
+                                seed=state.settings.identify.seed, surrogates=0,
+                                input_name=state.model.input_quantity)
+        for f in findings:
+            if f.effect == "unexplained":
+                continue
+            rivals = (base is not None and base.best is not None
+                      and base.best.group == sig.best.group
+                      and base.best.cv_share >= f.relative_gain)
+            worse = _worse_on_stage(state, sig.channel, f.stage)
+            if rivals or worse:
+                f.confidence = min(f.confidence, DOUBTED_CONFIDENCE)
+                why = (f"{sig.best.group} explains {100 * base.best.cv_share:.0f} % of the "
+                       "base residual, as much as this effect removes" if rivals else
+                       f"the extension leaves {sig.channel}'s output error larger on "
+                       f"{f.stage} and what is left follows {sig.best.group}")
+                f.evidence += f"; IN DOUBT (a look-alike of something outside the catalogue?): {why}"
+
+
+def _worse_on_stage(state: DiscoveryState, channel: str, stage: str) -> bool:
+    """Whether the extended model's residual in ``channel`` is larger than the base's over
+    the stage's identification tests."""
+    def energy(tests) -> float:
+        return sum(float(np.sum(t.residual(channel) ** 2)) for t in tests
+                   if t.scenario == stage and channel in t.measured)
+    base = energy(state.residuals)
+    return base > 0 and energy(state.extended_residuals) > base

@@ -1,0 +1,154 @@
+"""The unexplained round's signature search (discovery/signature.py) on residuals with a
+planted structure that no catalogue effect has, and on coloured noise alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mbst.core.filtering import exponential_filter
+from mbst.core.sensors import coloured_noise
+from mbst.discovery.data import TestResidual
+from mbst.discovery.signature import describe_channel, learned_term
+
+RATE_HZ = 500.0
+TAU_S = 0.005
+RATIO = 16.5  # motor turns per steering turn
+CH = "steering_torque_nm"
+
+
+def _test(i: int, amplitude_deg: float, freq_hz: float, seed: int, structure) -> TestResidual:
+    """A sine test whose 'measured' torque is the twin plus ``structure`` and AR(1) noise."""
+    dt = 1.0 / RATE_HZ
+    t = np.arange(0.0, 3.0 / freq_hz, dt)
+    angle = np.deg2rad(amplitude_deg) * np.sin(2 * np.pi * freq_hz * t)
+    omega = np.gradient(angle, dt)
+    motor = RATIO * angle
+    clean = 2.0 * np.tanh(omega / 0.05) + 8.0 * angle  # friction plus a spring
+    twin = exponential_filter(clean, dt, TAU_S)
+    rng = np.random.default_rng([seed, i])
+    raw = clean + structure(t, clean, motor) + coloured_noise(len(t), 0.02, 0.9, rng)
+    return TestResidual(
+        id=f"t{i}", scenario="free_tie_rods", role="identification", motor="off", dt_s=dt,
+        time_s=t, angle_rad=angle, omega_rad_per_s=omega,
+        measured={CH: exponential_filter(raw, dt, TAU_S)}, simulated={CH: twin},
+        states={"motor_angle_rad": motor, "torsion_bar_torque_nm": clean}, tau_s=TAU_S)
+
+
+def _campaign(structure, seed: int = 0) -> list[TestResidual]:
+    plan = [(20, 0.25), (30, 0.5), (15, 0.8), (40, 0.3)]
+    return [_test(i, a, f, seed, structure) for i, (a, f) in enumerate(plan)]
+
+
+def _lagged(lag_s: float):
+    def structure(t, clean, motor):
+        return np.interp(t - lag_s, t, clean) - clean
+    return structure
+
+
+def _describe(tests):
+    places = {t.id: k / (len(tests) - 1) - 0.5 for k, t in enumerate(tests)}
+    return describe_channel(tests, CH, places, noise_rms=0.02 * 0.2,
+                            input_name="steering_angle_rad")
+
+
+def test_a_channel_that_lags_the_angle_is_described_as_a_lag_of_its_size():
+    sig = _describe(_campaign(_lagged(0.012)))
+    assert sig.structured, sig
+    assert sig.best.group == f"lag:{CH}"
+    assert sig.best.quantities()["lag_s"] == pytest.approx(0.012, rel=0.25)
+
+
+def test_a_ripple_in_motor_angle_is_periodic_in_motor_angle_at_its_order():
+    sig = _describe(_campaign(lambda t, clean, motor: 0.15 * np.sin(18 * motor)))
+    assert sig.structured, sig
+    assert sig.best.group == "periodic:motor_angle_rad"
+    assert sig.best.harmonic == 18
+
+
+def test_coloured_noise_alone_is_at_the_floor():
+    for seed in range(3):
+        sig = _describe(_campaign(lambda t, clean, motor: 0.0 * t, seed=seed))
+        assert not sig.structured, (seed, sig.best, sig.chance_share)
+
+
+def test_the_learned_term_predicts_a_test_it_was_not_fitted_on():
+    tests = _campaign(_lagged(0.012))
+    sig = _describe(tests[:3])
+    held = tests[3]
+    r = held.residual(CH)
+    corrected = r - learned_term(held, sig, 0.5, "steering_angle_rad")
+    assert np.std(corrected) < 0.5 * np.std(r)
+
+
+# --------------------------------------------------------------------------------------
+# Through the whole discovery: effects the catalogue does not hold, planted on the bench
+# --------------------------------------------------------------------------------------
+def _blocked_column_plan():
+    from mbst.systems.eps.bench import PlannedTest
+
+    sine = lambda a, f, c: {"kind": "sine", "amplitude_deg": a, "frequency_hz": f,  # noqa: E731
+                            "cycles": c}
+    return [PlannedTest("s1_sine_0p4hz", "blocked_column", sine(6, 0.4, 2)),
+            PlannedTest("s1_sine_1hz", "blocked_column", sine(4, 1.0, 4)),
+            PlannedTest("s1_sine_1p6hz", "blocked_column", sine(3, 1.6, 5)),
+            PlannedTest("s1_sine_0p7hz_ctrl", "blocked_column", sine(5, 0.7, 3),
+                        role="control")]
+
+
+def _outside(tmp_path_factory, plan, **realism):
+    from mbst.discovery.pipeline import DiscoverSettings, discover
+    from mbst.io.campaign import read_campaign
+    from mbst.systems.eps.bench import BenchRecipe, run_bench
+    from mbst.systems.eps.realism import BenchRealism
+
+    out = tmp_path_factory.mktemp("outside")
+    camp = read_campaign(run_bench(out, BenchRecipe(effects=[], seed=2, plan=plan,
+                                                    realism=BenchRealism(**realism))))
+    return discover(camp, DiscoverSettings(max_effects=2, sparse=False, neural=False,
+                                           resolution=False))
+
+
+def _check_outside(result, kind: str, quantity: str) -> dict:
+    """No confident catalogue name; an unexplained finding with the right signature, whose
+    physics + learned correction beats the base on the held-out controls."""
+    named = [f for f in result.findings if f.effect != "unexplained"]
+    assert all(f.confidence < 0.5 for f in named), [(f.effect, f.confidence) for f in named]
+    found = [f for f in result.findings if f.effect == "unexplained"]
+    assert found, [(s.channel, s.best, s.chance_share) for s in result.signatures]
+    sig = found[0].signature
+    assert (sig["kind"], sig["quantity"]) == (kind, quantity), found[0].evidence
+    means = result.comparison.groupby("model")["fit_percent"].mean()
+    assert means["physics+learned"] > means["base"]
+    assert sig["control_fit_gain_percent"] == pytest.approx(
+        means["physics+learned"] - means["extended"], abs=1e-2)
+    return sig
+
+
+def test_a_torque_sensor_lag_is_described_not_named(tmp_path_factory):
+    result = _outside(tmp_path_factory, _blocked_column_plan(), torque_lag_s=0.012)
+    sizes = _check_outside(result, "lag", "steering_torque_nm")
+    assert 0.004 < sizes["lag_s"] < 0.02
+
+
+def test_the_unexplained_round_is_silent_on_a_clean_rig(tmp_path_factory):
+    result = _outside(tmp_path_factory, _blocked_column_plan())
+    assert not result.findings, [f.evidence for f in result.findings]
+    assert result.signatures and not any(s.structured for s in result.signatures)
+
+
+@pytest.mark.slow
+def test_friction_that_drifts_over_the_campaign_is_described_not_named(tmp_path_factory):
+    from mbst.systems.eps.bench import compact_plan
+
+    result = _outside(tmp_path_factory, compact_plan(), friction_drift=0.3)
+    _check_outside(result, "drift", "time")
+
+
+@pytest.mark.slow
+def test_motor_cogging_is_described_not_named(tmp_path_factory):
+    from mbst.systems.eps.bench import compact_plan
+
+    result = _outside(tmp_path_factory, compact_plan(), cogging_nm=0.004)
+    named = [f for f in result.findings if f.effect != "unexplained"]
+    assert all(f.confidence < 0.5 for f in named), [(f.effect, f.confidence) for f in named]
