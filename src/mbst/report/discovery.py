@@ -205,8 +205,10 @@ def signature_lines(result: DiscoveryResult) -> list[str]:
         best = sig.best
         what = "—" if best is None else best.group + "".join(
             f", {k} = {v:.4g}" for k, v in best.quantities().items())
+        level = sig.residual_rms / sig.noise_rms if sig.noise_rms > 0 else float("inf")
         verdict = ("**structure left** (see figures/unexplained.png)" if sig.structured
-                   else "at the noise floor of this library")
+                   else f"nothing this library predicts (residual {level:.1f}× the "
+                   "white-noise estimate)")
         lines.append(f"| {sig.channel} | {100 * sig.gain_error:+.2f} % | {sig.residual_rms:.4g} | {sig.noise_rms:.4g} | {what} "
                      f"| {100 * (best.cv_share if best else 0):.1f} % | "
                      f"{100 * sig.chance_share:.1f} % | {verdict} |")
