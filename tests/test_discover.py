@@ -71,6 +71,9 @@ def test_worm_gear_backlash_is_named_with_its_width(backlash):
     assert 0.5 < f.confidence <= 1.0
     assert f.cv["folds"] == 3 and f.cv["wins"] >= 2
     assert "structure test" in f.evidence and "runner-up" in f.evidence
+    # the unexplained round finds nothing left beside it, and says so
+    assert f.confirmation == "confirmed", f.evidence
+    assert [g.effect for g in result.findings] == ["backlash"]
 
 
 def test_extension_restores_control_fit_to_the_true_model(backlash):

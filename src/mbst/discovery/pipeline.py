@@ -38,7 +38,7 @@ from mbst.discovery.rounds.resolution import Resolution, resolution_round
 from mbst.discovery.rounds.stickslip import stick_slip_round
 from mbst.discovery.rounds.unexplained import (
     campaign_places,
-    doubt_catalogue_names,
+    judge_catalogue_names,
     unexplained_round,
 )
 from mbst.discovery.state import DiscoverSettings, DiscoveryState, Finding, total_cost
@@ -170,7 +170,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
     findings = [proposal_finding(p, state, sparse_ev, neural_ev) for p in state.proposals]
     findings += state.findings
     try:
-        doubt_catalogue_names(findings, state)
+        judge_catalogue_names(findings, state)
     except Exception as exc:  # a check on the names must never sink them
         log.warning("the unexplained round's check of the names failed: %s", exc)
         state.failures.append(f"unexplained round (names check): {type(exc).__name__}: {exc}")

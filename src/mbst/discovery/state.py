@@ -79,6 +79,9 @@ class Finding:
     alternatives: list[dict] = field(default_factory=list)
     # an ``unexplained`` finding's description: what the residual correlates with, where
     signature: dict | None = None
+    # the unexplained round's verdict on a catalogue name: "confirmed" (nothing left in
+    # its stage's channels), "partly explained", "in doubt"; "" where the round did not run
+    confirmation: str = ""
 
     def record(self) -> dict:
         return {"effect": self.effect, "component": self.component or None,
@@ -88,7 +91,8 @@ class Finding:
                 "cross_validation": self.cv,
                 "indistinguishable_from": list(self.indistinguishable_from),
                 "alternatives": list(self.alternatives),
-                **({"signature": self.signature} if self.signature is not None else {})}
+                **({"signature": self.signature} if self.signature is not None else {}),
+                **({"confirmation": self.confirmation} if self.confirmation else {})}
 
 
 @dataclass

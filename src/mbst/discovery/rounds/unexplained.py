@@ -12,9 +12,9 @@ where (channels), what it is periodic in or correlates with, and its size in
 physical terms; it names no catalogue effect. The fitted signature is the
 "physics + learned" correction the control tests score.
 
-A catalogue finding whose stage's residual the same signature explains as well
-as the catalogue effect did is in doubt: its confidence is capped below ½ and
-its evidence says which signature competes with it.
+Every catalogue finding is then judged against what its stage's channels still
+hold (``judge_catalogue_names``): confirmed, partly explained, or in doubt
+(confidence capped below ½, the competing signature in its evidence).
 """
 
 from __future__ import annotations
@@ -156,39 +156,73 @@ def _place(kind: str, quantity: str, components: set[str]) -> str:
         (c for c in sorted(components) if part and part in c), "")
 
 
-def doubt_catalogue_names(findings: list[Finding], state: DiscoveryState) -> None:
-    """A catalogue name is in doubt where structure outside the catalogue is left in a
-    channel of its stage and either explains that channel's base residual as well as the
-    effect did, or the extension made the channel's output error larger there (a phase-free
-    match, such as stick-slip's, to an oscillation of another cause). Its confidence is
-    capped below ½ and its evidence says which signature competes with it."""
-    found = [s for s in state.signatures if s.structured]
+def judge_catalogue_names(findings: list[Finding], state: DiscoveryState) -> None:
+    """Each catalogue finding against what its stage's channels still hold.
+
+    ``confirmed``: nothing the generic library predicts is left in its stage's channels.
+    ``partly explained``: structure is left beside it (the unexplained finding).
+    ``in doubt``: the structure left follows a signature that explains the channel's base
+    residual as much as the effect removed, or the extension made the channel's output
+    error larger on its stage (a phase-free match, such as stick-slip's, to an oscillation
+    of another cause); the confidence is capped below ½.
+    """
+    if not state.signatures:
+        return
     places = campaign_places(state)
-    for sig in found:
-        base = describe_channel(state.residuals, sig.channel, places, sig.noise_rms,
-                                seed=state.settings.identify.seed, surrogates=0,
-                                input_name=state.model.input_quantity)
-        for f in findings:
-            if f.effect == "unexplained":
-                continue
-            rivals = (base is not None and base.best is not None
-                      and base.best.group == sig.best.group
-                      and base.best.cv_share >= f.relative_gain)
-            worse = _worse_on_stage(state, sig.channel, f.stage)
-            if rivals or worse:
+    base_of: dict[str, ChannelSignature | None] = {}
+    for f in findings:
+        if f.effect == "unexplained":
+            continue
+        left = [s for s in state.signatures if s.structured and _logged(state, s.channel, f)]
+        if not left:
+            f.confirmation = "confirmed"
+            continue
+        f.confirmation = "partly explained"
+        for sig in left:
+            if sig.channel not in base_of:
+                base_of[sig.channel] = describe_channel(
+                    state.residuals, sig.channel, places, sig.noise_rms,
+                    seed=state.settings.identify.seed, surrogates=0,
+                    input_name=state.model.input_quantity)
+            why = _doubt(state, f, sig, base_of[sig.channel])
+            if why:
+                f.confirmation = "in doubt"
                 f.confidence = min(f.confidence, DOUBTED_CONFIDENCE)
-                why = (f"{sig.best.group} explains {100 * base.best.cv_share:.0f} % of the "
-                       "base residual, as much as this effect removes" if rivals else
-                       f"the extension leaves {sig.channel}'s output error larger on "
-                       f"{f.stage} and what is left follows {sig.best.group}")
-                f.evidence += f"; IN DOUBT (a look-alike of something outside the catalogue?): {why}"
+                f.evidence += ("; IN DOUBT (a look-alike of something outside the "
+                               f"catalogue?): {why}")
+                break
+        else:
+            f.evidence += (f"; PARTLY EXPLAINED: structure is left in "
+                           f"{', '.join(s.channel for s in left)} (the unexplained finding)")
+
+
+def _doubt(state: DiscoveryState, f: Finding, sig: ChannelSignature,
+           base: ChannelSignature | None) -> str:
+    """Why a catalogue finding is in doubt against a structured signature ('' if not)."""
+    if (base is not None and base.best is not None and base.best.group == sig.best.group
+            and base.best.cv_share >= f.relative_gain):
+        return (f"{sig.best.group} explains {100 * base.best.cv_share:.0f} % of the base "
+                "residual, as much as this effect removes")
+    if _worse_on_stage(state, sig.channel, f.stage):
+        return (f"the extension leaves {sig.channel}'s output error larger on {f.stage} and "
+                f"what is left follows {sig.best.group}")
+    return ""
+
+
+def _stage_tests(tests: list, stage: str) -> list:
+    on_stage = [t for t in tests if t.scenario == stage]
+    return on_stage or tests  # a finding of no single cut-out (the inverse model): all
+
+
+def _logged(state: DiscoveryState, channel: str, f: Finding) -> bool:
+    return any(channel in t.measured for t in _stage_tests(state.residuals, f.stage))
 
 
 def _worse_on_stage(state: DiscoveryState, channel: str, stage: str) -> bool:
     """Whether the extended model's residual in ``channel`` is larger than the base's over
     the stage's identification tests."""
     def energy(tests) -> float:
-        return sum(float(np.sum(t.residual(channel) ** 2)) for t in tests
-                   if t.scenario == stage and channel in t.measured)
+        return sum(float(np.sum(t.residual(channel) ** 2)) for t in _stage_tests(tests, stage)
+                   if channel in t.measured)
     base = energy(state.residuals)
     return base > 0 and energy(state.extended_residuals) > base
