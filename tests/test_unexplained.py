@@ -47,7 +47,7 @@ def _lagged(lag_s: float):
 
 
 def _describe(tests):
-    places = {t.id: k / (len(tests) - 1) - 0.5 for k, t in enumerate(tests)}
+    places = {t.id: k / max(len(tests) - 1, 1) - 0.5 for k, t in enumerate(tests)}
     return describe_channel(tests, CH, places, noise_rms=0.02 * 0.2,
                             input_name="steering_angle_rad")
 
@@ -152,3 +152,11 @@ def test_motor_cogging_is_described_not_named(tmp_path_factory):
     result = _outside(tmp_path_factory, compact_plan(), cogging_nm=0.004)
     named = [f for f in result.findings if f.effect != "unexplained"]
     assert all(f.confidence < 0.5 for f in named), [(f.effect, f.confidence) for f in named]
+
+
+def test_one_long_test_is_cut_into_stretches_for_its_held_out_folds():
+    """EMPS has one identification run: contiguous stretches stand in for held-out tests."""
+    one = [_test(0, 25, 0.3, 5, _lagged(0.010))]
+    sig = _describe(one + [])  # a single test
+    assert sig is not None and sig.structured
+    assert sig.best.group == f"lag:{CH}"

@@ -1,7 +1,8 @@
 # Discovery: find what the base model lacks, name the effect and its component,
 # insert it, refit, and compare model families on the held-out control tests
-# (base, extended, SINDy-only, physics + neural residual, and the bench's true
-# model when the campaign came from the virtual bench).
+# (base, extended, SINDy-only, physics + neural residual, physics + the learned
+# term of an unexplained finding, and the bench's true model when the campaign
+# came from the virtual bench).
 #
 # Same atomic pattern as identify.smk: write into discover.tmp, rename when done.
 # `mbst discover` runs its own base identification with the same settings as the

@@ -41,6 +41,8 @@ from mbst.discovery.data import TestResidual
 MAX_PERIODS_PER_REV = 64
 # samples per test kept for the regressions (the filtered residual is smooth)
 SAMPLES_PER_TEST = 1500
+# held-out folds: the tests, or contiguous stretches of them where a campaign has fewer
+MIN_FOLDS = 4
 SURROGATES = 19  # chance level: the largest of 19 phase-randomised copies (p ≤ 0.05)
 
 __all__ = ["ChannelSignature", "GroupScore", "abscissa", "describe_channel", "feature_groups",
@@ -193,6 +195,10 @@ def _library(tests: list[TestResidual], channel: str, places: dict[str, float],
     for key in keys:
         width = next(f[key].shape[1] for f in per_test if key in f)
         feats[key] = [f.get(key, np.zeros((len(y), width))) for f, y in zip(per_test, ys)]
+    if 0 < len(ys) < MIN_FOLDS:  # one or two long tests: contiguous stretches are the folds
+        k = -(-MIN_FOLDS // len(ys))
+        ys = [b for y in ys for b in np.array_split(y, k)]
+        feats = {key: [b for x in xs for b in np.array_split(x, k)] for key, xs in feats.items()}
     grams = {k: [x.T @ x for x in xs] for k, xs in feats.items()}
     return _Library(ys, feats, grams, scenarios)
 
@@ -277,7 +283,7 @@ def describe_channel(tests: list[TestResidual], channel: str, places: dict[str, 
     """Rank the signature groups on one channel's residual and set them against chance
     (``surrogates`` phase-randomised copies; 0: no chance level, p = 1)."""
     lib = _library(tests, channel, places, input_name)
-    if len(lib.y) < 2:
+    if not lib.y:
         return None
     gain = _take_out_gain(lib)
     ranking = _score_groups(lib, lib.y)

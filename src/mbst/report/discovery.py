@@ -157,6 +157,8 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines += ["| # | effect | component | parameters | confidence |", "|---|---|---|---|---|"]
         for i, f in enumerate(result.findings, 1):
             pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
+            if f.effect == "unexplained" and f.signature:
+                pars = f"{f.signature['kind']} in {f.signature['quantity']}"
             where = " or ".join([f.component, *f.indistinguishable_from])
             alt = "".join(f" (or {a['effect']} in {a['component']}?)" for a in f.alternatives)
             lines.append(f"| {i} | {f.effect}{alt} | {where} | {pars} | {f.confidence:.2f} |")
