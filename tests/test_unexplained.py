@@ -160,3 +160,14 @@ def test_one_long_test_is_cut_into_stretches_for_its_held_out_folds():
     sig = _describe(one + [])  # a single test
     assert sig is not None and sig.structured
     assert sig.best.group == f"lag:{CH}"
+
+
+@pytest.mark.slow
+def test_a_variable_ratio_rack_is_described_not_named(tmp_path_factory):
+    from mbst.systems.eps.bench import compact_plan
+
+    result = _outside(tmp_path_factory, compact_plan(), rack_ratio_variation=0.2)
+    named = [f for f in result.findings if f.effect != "unexplained"]
+    assert all(f.confidence < 0.5 for f in named), [(f.effect, f.confidence) for f in named]
+    found = [f for f in result.findings if f.effect == "unexplained"]
+    assert found and found[0].signature["kind"] == "polynomial", result.findings

@@ -41,6 +41,8 @@ from mbst.discovery.data import TestResidual
 MAX_PERIODS_PER_REV = 64
 # samples per test kept for the regressions (the filtered residual is smooth)
 SAMPLES_PER_TEST = 1500
+# periods of a ripple a test must sweep for the ripple to count as periodic in that angle
+MIN_PERIODS_SEEN = 2
 # held-out folds: the tests, or contiguous stretches of them where a campaign has fewer
 MIN_FOLDS = 4
 SURROGATES = 19  # chance level: the largest of 19 phase-randomised copies (p ≤ 0.05)
@@ -121,11 +123,10 @@ def feature_groups(t: TestResidual, channel: str, place: float, input_name: str 
     groups: dict = {f"lag:{channel}": np.gradient(twin, t.dt_s)[:, None],
                     "gain": twin[:, None]}
     signals = _signals(t, input_name)
-    for name, q in signals.items():
-        z = (q - q.mean()) / (np.std(q) or 1.0)
-        groups[f"polynomial:{name}"] = _filtered(t, np.column_stack([z, z * z, z ** 3]))
+    for name, q in signals.items():  # in the quantity's own units: tests share the law
+        groups[f"polynomial:{name}"] = _filtered(t, np.column_stack([q, q * q, q ** 3]))
     angles = {k: a for k, a in signals.items() if k.endswith("_angle_rad")
-              and np.ptp(a) > 2 * math.pi / MAX_PERIODS_PER_REV}
+              and np.ptp(a) * MAX_PERIODS_PER_REV >= MIN_PERIODS_SEEN * 2 * math.pi}
     for name, a in angles.items():
         groups[f"periodic:{name}"] = _orders(t, a)
     groups["drift:time"] = _drift(t, place, scenarios or (t.scenario,))
@@ -153,7 +154,10 @@ def _orders(t: TestResidual, angle: np.ndarray) -> dict[int, np.ndarray]:
     s = speed / (speed.max() or 1.0)
     mod = np.column_stack([np.ones_like(s), s, s * s])
     out = {}
-    for n in range(1, MAX_PERIODS_PER_REV + 1):
+    # a ripple is periodic only where the test sweeps two of its periods at least: less is a
+    # smooth function of the angle, the polynomial group's reading
+    for n in range(int(math.ceil(MIN_PERIODS_SEEN * 2 * math.pi / max(np.ptp(angle), 1e-12))),
+                   MAX_PERIODS_PER_REV + 1):
         sc = np.column_stack([np.sin(n * angle), np.cos(n * angle)])
         out[n] = _filtered(t, (sc[:, :, None] * mod[:, None, :]).reshape(len(s), -1))
     return out
@@ -169,6 +173,7 @@ class _Library:
     features: dict[tuple[str, int], list[np.ndarray]]
     grams: dict[tuple[str, int], list[np.ndarray]]
     scenarios: tuple[str, ...]
+    scales: dict[tuple[str, int], np.ndarray]
 
     def stats(self, ys: list[np.ndarray]) -> dict[tuple[str, int], list[tuple]]:
         return {key: [(g, x.T @ y, float(y @ y)) for g, x, y in
@@ -199,8 +204,15 @@ def _library(tests: list[TestResidual], channel: str, places: dict[str, float],
         k = -(-MIN_FOLDS // len(ys))
         ys = [b for y in ys for b in np.array_split(y, k)]
         feats = {key: [b for x in xs for b in np.array_split(x, k)] for key, xs in feats.items()}
+    # each column on the scale of its spread over all tests: the search's tiny ridge then
+    # weighs q and q³ alike (the learned term's coefficients are mapped back, ``_raw``)
+    scales = {}
+    for key, xs in feats.items():
+        sd = np.concatenate(xs).std(axis=0)
+        scales[key] = np.where(sd > 0, sd, 1.0)
+        feats[key] = [x / scales[key] for x in xs]
     grams = {k: [x.T @ x for x in xs] for k, xs in feats.items()}
-    return _Library(ys, feats, grams, scenarios)
+    return _Library(ys, feats, grams, scenarios, scales)
 
 
 def _centre(x: np.ndarray) -> np.ndarray:
@@ -260,7 +272,8 @@ def _take_out_gain(lib: _Library) -> float:
     """Fit and remove the channel's scale against its twin (a known ratio or a sensor gain
     a little off is calibration, as an offset is, not an effect); returns the relative
     scale error (measured/simulated − 1)."""
-    twins = lib.features.pop(("gain", 0))
+    scale = float(lib.scales.pop(("gain", 0))[0])
+    twins = [x * scale for x in lib.features.pop(("gain", 0))]
     lib.grams.pop(("gain", 0))
     x, y = np.concatenate(twins)[:, 0], np.concatenate(lib.y)
     xx = float(x @ x)
@@ -292,7 +305,8 @@ def describe_channel(tests: list[TestResidual], channel: str, places: dict[str, 
               for _ in range(surrogates)]
     best = ranking[0] if ranking else None
     if best is not None:
-        best.coefficients = _fit(lib.features[(best.group, best.harmonic)], lib.y)
+        key = (best.group, best.harmonic)
+        best.coefficients = _fit(lib.features[key], lib.y) / lib.scales[key]
     obs = best.cv_share if best else 0.0
     y = np.concatenate(lib.y)
     return ChannelSignature(
@@ -336,7 +350,7 @@ def feature_names(score: GroupScore) -> list[str]:
     if kind == "lag":
         return [f"d/dt {q}"]
     if kind == "polynomial":
-        return [f"z({q})", f"z({q})^2", f"z({q})^3"]
+        return [q, f"{q}^2", f"{q}^3"]
     if kind == "periodic":
         n = score.harmonic
         return [f"{f}({n}·{q})·{m}" for f in ("sin", "cos") for m in ("1", "s", "s^2")]

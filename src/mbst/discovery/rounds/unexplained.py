@@ -34,6 +34,12 @@ log = logging.getLogger(__name__)
 # the confidence of a catalogue name that an outside signature explains as well
 DOUBTED_CONFIDENCE = 0.45
 
+def equally(sig: ChannelSignature, margin: float = 0.01) -> list[str]:
+    """Other groups that predict the channel as well (within ``margin`` of the residual):
+    quantities the tests move together (motor angle, pinion angle, rack position)."""
+    return [g.group for g in sig.ranking[1:] if g.cv_share >= sig.best.cv_share - margin]
+
+
 def reading(sig: ChannelSignature) -> str:
     """What an engineer reads in a channel's signature, in physical terms."""
     kind, _, quantity = sig.best.group.partition(":")
@@ -48,8 +54,10 @@ def reading(sig: ChannelSignature) -> str:
     if kind == "drift":
         return (f"the friction level in {sig.channel} changes over the campaign's running "
                 "order (the rig warming up, wear)")
-    return (f"{sig.channel} follows a polynomial in {quantity} (a gain, ratio or stiffness "
-            "that varies with it)")
+    same = [g.partition(":")[2] for g in equally(sig) if g.startswith("polynomial:")]
+    also = f" (or equally {', '.join(same)}: these tests move them together)" if same else ""
+    return (f"{sig.channel} follows a polynomial in {quantity}{also} (a gain, ratio or "
+            "stiffness that varies with it)")
 
 
 def campaign_places(state: DiscoveryState) -> dict[str, float]:
@@ -141,6 +149,7 @@ def unexplained_finding(found: list[ChannelSignature], components: set[str]) -> 
         cv={"held_out": "tests", "share_of_residual": lead.best.cv_share,
             "chance_share": lead.chance_share},
         signature={"kind": kind, "quantity": quantity, **lead.best.quantities(),
+                   "equally": equally(lead),
                    "stages": list(lead.best.scenarios), "reading": reading(lead),
                    "channels": [signature_record(s) for s in found]},
     )

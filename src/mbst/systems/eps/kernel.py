@@ -97,6 +97,7 @@ P_STOPR = PARAM_INDEX["torsion_bar.stiffness_limit_stop.stiffness_ratio"]
 P_TRF = PARAM_INDEX["tie_rods.coulomb_friction.level"]
 P_TRF_VEPS = PARAM_INDEX["tie_rods.regularisation_velocity_m_per_s"]
 P_COG_A = PARAM_INDEX["motor.cogging_torque_nm"]
+P_VRATIO = PARAM_INDEX["rack_pinion.ratio_variation_per_rad2"]
 P_COG_N = PARAM_INDEX["motor.cogging_periods_per_rev"]
 P_AFAM = PARAM_INDEX["assist.family"]
 P_C1 = PARAM_INDEX["assist.c1"]
@@ -334,12 +335,30 @@ def body_mass(body, p):
 
 
 @njit(**_JIT)
+def pinion_ratio(theta_p, p):
+    """The rack's travel per pinion radian: the pinion radius, or on a variable-ratio rack
+    (bench only, not in the catalogue) r·(1 + a·θ²)."""
+    a = p[P_VRATIO]
+    if a == 0.0:
+        return p[P_RP]
+    return p[P_RP] * (1.0 + a * theta_p * theta_p)
+
+
+@njit(**_JIT)
+def pinion_rack_position(theta_p, p):
+    """The rigid rack's position at pinion angle θ: ∫ pinion_ratio dθ."""
+    a = p[P_VRATIO]
+    if a == 0.0:
+        return p[P_RP] * theta_p
+    return p[P_RP] * (theta_p + a * theta_p ** 3 / 3.0)
+
+
+@njit(**_JIT)
 def rack_kinematics(x, p):
     """Rack position and speed: its own body with rack-pinion backlash, else rigid."""
     if rack_is_body(p):
         return x[S_XR], x[S_VR]
-    r = p[P_RP]
-    return r * x[S_THP], r * x[S_WP]
+    return pinion_rack_position(x[S_THP], p), pinion_ratio(x[S_THP], p) * x[S_WP]
 
 
 @njit(**_JIT)
@@ -392,7 +411,7 @@ def _loads(x, th_sw, om_sw, p, scen, mode, force, aux):
         force[0] = t_tb + t_g - t_rp
         force[2] = t_rp / r - f_tie
     else:
-        force[0] = t_tb + t_g - r * f_tie
+        force[0] = t_tb + t_g - pinion_ratio(x[S_THP], p) * f_tie
         force[2] = 0.0
     force[1] = t_m - t_g / n - cogging_torque(x[S_THM], p)
     k_w = p[P_KW] if scen == TIRES_ON_GROUND else 0.0
@@ -481,18 +500,19 @@ def _body_friction(body, v, x, p, scen, aux, v_rack, v_wheel, h):
     if body == BODY_PINION:
         if rack_is_body(p):
             return 0.0, 0.0
-        pf = rack_pos_factor(p, r * x[S_THP])
-        f, df = stepped_friction(p, B_RACK, p[B_RACK], p[B_RACK + 1], r * v, x[S_ZRACK],
+        rr = pinion_ratio(x[S_THP], p)
+        pf = rack_pos_factor(p, pinion_rack_position(x[S_THP], p))
+        f, df = stepped_friction(p, B_RACK, p[B_RACK], p[B_RACK + 1], rr * v, x[S_ZRACK],
                                  load_rack, pf, h)
         if tie_rods_connected(scen) and wheels_move(scen):
-            g, dg = tie_rod_friction(p, r * v - v_wheel)
+            g, dg = tie_rod_friction(p, rr * v - v_wheel)
             f += g
             df += dg
         elif scen == BLOCKED_RACK:
-            g, dg = tie_rod_friction(p, r * v)
+            g, dg = tie_rod_friction(p, rr * v)
             f += g
             df += dg
-        return r * f, r * r * df
+        return rr * f, rr * rr * df
     if body == BODY_RACK:
         pf = rack_pos_factor(p, x[S_XR])
         f, df = stepped_friction(p, B_RACK, p[B_RACK], p[B_RACK + 1], v, x[S_ZRACK], load_rack,
@@ -527,7 +547,7 @@ def _friction_bound(body, x, p, scen, aux):
     fr = 2.0 * max(p[B_RACK + FB_STATIC], 1.0) * (p[B_RACK] + p[B_RACK + FB_LOAD] * aux[6] / r)
     fr = fr * rack_pos_factor(p, xr) + abs(x[S_ZRACK]) + p[P_TRF]
     if body == BODY_PINION:
-        return 0.0 if rack_is_body(p) else r * fr
+        return 0.0 if rack_is_body(p) else pinion_ratio(x[S_THP], p) * fr
     return fr
 
 
@@ -548,7 +568,7 @@ def _guess_terms(body, x, p, scen, aux):
         xr, _ = rack_kinematics(x, p)
         lvl = (p[B_RACK] + p[B_RACK + FB_LOAD] * aux[6] / r) * rack_pos_factor(p, xr)
         bv = p[B_RACK + 1]
-        sc = r if body == BODY_PINION else 1.0
+        sc = pinion_ratio(x[S_THP], p) if body == BODY_PINION else 1.0
     if p[b + FB_SIGMA] > 0.0 and stiff_share(p, b) < 1.0:
         lvl = 0.0
     return lvl * sc, p[b + FB_VEPS] / sc, bv * sc * sc
@@ -615,7 +635,7 @@ def step(x, th_sw, om_sw, om_end, p, scen, mode, h, force, aux):
             x[S_VR] = _solve_velocity(BODY_RACK, m / h, x[S_VR] + h / m * force[2], x[S_VR],
                                       x, p, scen, aux, 0.0, v_wheel, h)
         if wheels_move(scen):
-            v_rack = x[S_VR] if sep else p[P_RP] * x[S_WP]
+            v_rack = x[S_VR] if sep else pinion_ratio(x[S_THP], p) * x[S_WP]
             m = body_mass(BODY_WHEEL, p)
             x[S_VW] = _solve_velocity(BODY_WHEEL, m / h, x[S_VW] + h / m * force[3], x[S_VW],
                                       x, p, scen, aux, v_rack, 0.0, h)

@@ -157,6 +157,10 @@ def _build_specs() -> list[ParamSpec]:
         # motor angle), held at 0 by identification; discovery can only describe it
         ParamSpec("motor.cogging_torque_nm", "N·m", 0.0, 0.0, 0.0, "fixed", "motor"),
         ParamSpec("motor.cogging_periods_per_rev", "-", 18.0, 18.0, 18.0, "fixed", "motor"),
+        # not a catalogue effect either: a variable-ratio rack (quicker off centre), the
+        # rack's travel per pinion radian r·(1 + a·θ²) with θ the pinion angle in rad
+        ParamSpec("rack_pinion.ratio_variation_per_rad2", "1/rad²", 0.0, 0.0, 0.0, "fixed",
+                  "rack_pinion"),
         # power assist (seed 001): A(T) = c1·T + c2·sign(T)·|T|^c3 (EPS) or c1·sign(T)·(e^|T| − 1) (HPS)
         ParamSpec("assist.family", "-", 0.0, 0.0, 1.0, "fixed", "motor"),
         ParamSpec("assist.c1", "-", 1.5, 0.0, 20.0, "base", "motor"),

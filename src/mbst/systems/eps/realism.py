@@ -98,9 +98,10 @@ class BenchRealism:
     effect sizes not given on ``--effect`` drawn from production to worn.
     ``noise_ar1``, ``quantise``, ``torque_lag_s``, ``offset_drift``: sensor
     realities. ``friction_drift``: Coulomb levels that fall by this fraction as the
-    rig warms up over the campaign, and ``cogging_nm``, the motor's detent torque
-    (``motor.cogging_torque_nm``), are not catalogue effects: discovery can only
-    describe them (an ``unexplained`` finding). ``oversample`` and
+    rig warms up over the campaign, ``cogging_nm``, the motor's detent torque
+    (``motor.cogging_torque_nm``), and ``rack_ratio_variation``, a variable-ratio
+    rack quicker off centre (``rack_pinion.ratio_variation_per_rad2``), are not
+    catalogue effects: discovery can only describe them (an ``unexplained`` finding). ``oversample`` and
     ``smoothing``: the bench integrates on a finer grid than it samples and with
     regularisation velocities times ``smoothing``. ``plan_jitter``: test
     amplitudes and frequencies drawn up to ± this fraction off the plan's.
@@ -115,6 +116,7 @@ class BenchRealism:
     offset_drift: float = 0.0
     friction_drift: float = 0.0
     cogging_nm: float = 0.0
+    rack_ratio_variation: float = 0.0
     oversample: int = 1
     smoothing: float = 1.0
     plan_jitter: float = 0.0
