@@ -80,6 +80,8 @@ class ChannelSignature:
 
     channel: str
     gain_error: float  # measured/simulated − 1, taken out before the search (calibration)
+    # how much of the learned term a test it was not fitted on bears out (0…1, held out)
+    learned_gain: float
     residual_rms: float
     noise_rms: float
     best: GroupScore | None
@@ -148,7 +150,7 @@ def _drift(t: TestResidual, place: float, scenarios: tuple[str, ...]) -> np.ndar
 
 def _orders(t: TestResidual, angle: np.ndarray) -> dict[int, np.ndarray]:
     """sin and cos of each order N of ``angle``, times 1, s and s² (s: the angle's speed
-    over its largest): the rig's dynamics between the ripple and the sensor pass each
+    over the test's largest): the rig's dynamics between the ripple and the sensor pass each
     frequency N·ω with its own gain and phase, which a fixed pair cannot follow."""
     speed = np.abs(np.gradient(angle, t.dt_s))
     s = speed / (speed.max() or 1.0)
@@ -282,6 +284,18 @@ def _take_out_gain(lib: _Library) -> float:
     return g
 
 
+def _held_out_gain(stats: list[tuple], xs: list[np.ndarray], ys: list[np.ndarray]) -> float:
+    """The gain κ ∈ [0, 1] that best scales the held-out predictions onto the residual: the
+    learned term is applied at κ, so a signature that predicts little is applied little."""
+    g_all, b_all = sum(st[0] for st in stats), sum(st[1] for st in stats)
+    num = den = 0.0
+    for (g, b, _), x, y in zip(stats, xs, ys, strict=True):
+        pred = x @ _solve(g_all - g, b_all - b)
+        num += float(y @ pred)
+        den += float(pred @ pred)
+    return float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+
+
 def _surrogate(y: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """The same spectrum with random phases: the residual's colour, no tie to the motion."""
     f = np.fft.rfft(y)
@@ -304,13 +318,15 @@ def describe_channel(tests: list[TestResidual], channel: str, places: dict[str, 
     chance = [max(s.cv_share for s in _score_groups(lib, [_surrogate(y, rng) for y in lib.y]))
               for _ in range(surrogates)]
     best = ranking[0] if ranking else None
+    shrink = 0.0
     if best is not None:
         key = (best.group, best.harmonic)
         best.coefficients = _fit(lib.features[key], lib.y) / lib.scales[key]
+        shrink = _held_out_gain(lib.stats(lib.y)[key], lib.features[key], lib.y)
     obs = best.cv_share if best else 0.0
     y = np.concatenate(lib.y)
     return ChannelSignature(
-        channel=channel, gain_error=gain, residual_rms=float(np.sqrt(np.mean(y * y))), noise_rms=noise_rms,
+        channel=channel, gain_error=gain, learned_gain=shrink, residual_rms=float(np.sqrt(np.mean(y * y))), noise_rms=noise_rms,
         best=best, chance_share=float(max(chance, default=math.inf)),
         p_value=(1 + sum(c >= obs for c in chance)) / (1 + surrogates), ranking=ranking)
 
@@ -326,7 +342,7 @@ def learned_term(t: TestResidual, sig: ChannelSignature, place: float,
     x = feature_groups(t, sig.channel, place, input_name, sig.best.scenarios).get(sig.best.group)
     if isinstance(x, dict):
         x = x.get(sig.best.harmonic)
-    return out if x is None else out + _centre(x) @ sig.best.coefficients
+    return out if x is None else out + sig.learned_gain * (_centre(x) @ sig.best.coefficients)
 
 
 def abscissa(t: TestResidual, score: GroupScore, place: float,

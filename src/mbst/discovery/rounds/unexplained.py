@@ -111,6 +111,7 @@ def signature_record(sig: ChannelSignature) -> dict:
         "channel": sig.channel, "structured": sig.structured,
         # measured/simulated − 1 (a known ratio or a sensor gain off): calibration, no finding
         "scale_error": sig.gain_error,
+        "learned_gain": sig.learned_gain,
         "residual_rms": sig.residual_rms, "noise_rms": sig.noise_rms,
         "explained_rms": sig.explained_rms, "chance_share": sig.chance_share,
         "p_value": sig.p_value,
