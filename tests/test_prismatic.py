@@ -236,8 +236,14 @@ def test_emps_discovery_names_direction_dependent_friction(emps):
                 "closed_loop_force_error_percent_test", "open_loop_fit_percent_test"):
         assert np.isfinite(bench[key]), key
     # the inverse model names the drive's lag the closed loop hides (the issue's 4.5 %)
-    assert [f"{x.effect}:{x.component}" for x in res.findings[1:]] == ["drive_lag:drive"]
+    named = [f"{x.effect}:{x.component}" for x in res.findings[1:] if x.effect != "unexplained"]
+    assert named == ["drive_lag:drive"]
     assert bench["force_error_percent_test"] < 4.5
+    # what is left beside them (the axis' friction follows a polynomial in velocity) is
+    # described, and its learned correction does not cost the held-out run
+    means = res.comparison.groupby("model")["fit_percent"].mean()
+    if any(x.effect == "unexplained" for x in res.findings):
+        assert means["physics+learned"] >= means["extended"] - 0.05
     # the extension helps where the identification criterion looks, and beats the
     # published closed-loop numbers of the rigid model
     assert bench["force_error_percent_test"] < bench["force_error_percent_test_base"]
