@@ -171,3 +171,39 @@ def test_a_variable_ratio_rack_is_described_not_named(tmp_path_factory):
     assert all(f.confidence < 0.5 for f in named), [(f.effect, f.confidence) for f in named]
     found = [f for f in result.findings if f.effect == "unexplained"]
     assert found and found[0].signature["kind"] == "polynomial", result.findings
+
+
+def test_a_catalogue_name_that_an_outside_signature_rivals_is_put_in_doubt():
+    """judge_catalogue_names: a lag left in the torque rivals a name that removed less of
+    the base residual than the lag predicts (capped below ½); one that removed more stays,
+    partly explained; a name on a stage whose channels hold nothing left is confirmed."""
+    from types import SimpleNamespace
+
+    from mbst.discovery.rounds.unexplained import DOUBTED_CONFIDENCE, judge_catalogue_names
+    from mbst.discovery.state import Finding
+
+    lagged = _campaign(_lagged(0.012))
+    clean = _campaign(lambda t, clean, motor: 0.0 * t)
+    places = {t.id: k / (len(lagged) - 1) - 0.5 for k, t in enumerate(lagged)}
+
+    def finding(gain: float, stage: str = "free_tie_rods") -> Finding:
+        return Finding("presliding_hysteresis", "motor", {}, 0.9, "structure test", stage,
+                       gain, -50.0, {})
+
+    def state(residuals):
+        sig = describe_channel(residuals, CH, places, 0.02 * 0.2,
+                               input_name="steering_angle_rad")
+        return SimpleNamespace(
+            signatures=[sig], residuals=residuals, extended_residuals=residuals,
+            campaign=SimpleNamespace(tests=residuals), settings=SimpleNamespace(
+                identify=SimpleNamespace(seed=0)),
+            model=SimpleNamespace(name="eps-column-assist"))
+
+    rivalled, stronger = finding(0.2), finding(0.999)
+    judge_catalogue_names([rivalled, stronger], state(lagged))
+    assert rivalled.confirmation == "in doubt" and rivalled.confidence == DOUBTED_CONFIDENCE
+    assert "IN DOUBT" in rivalled.evidence and "lag:" in rivalled.evidence
+    assert stronger.confirmation == "partly explained" and stronger.confidence == 0.9
+    alone = finding(0.2)
+    judge_catalogue_names([alone], state(clean))
+    assert alone.confirmation == "confirmed" and alone.confidence == 0.9

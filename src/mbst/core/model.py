@@ -118,9 +118,6 @@ class ModelDefinition:
     hysteresis
         ``(x channel or "input", y channel, x label, y label, x scale)`` of the
         loop plot engineers read (steering angle vs torque for EPS).
-    input_quantity
-        The driving input's name where discovery describes a residual that
-        correlates with it (``steering_angle_rad``, ``displacement_m``).
     evidence_methods
         Which regressions run beside the structure test (``sparse``, ``neural``).
     candidate_library
@@ -194,9 +191,6 @@ class ModelDefinition:
     search_lower: dict[str, float] = field(default_factory=dict)
     component_scenarios: dict[str, tuple[str, ...]] = field(default_factory=dict)
     hysteresis: tuple[str, str, str, str, float] | None = None
-    # the driving input's name in discovery's descriptions (an ``*_angle_rad`` input is
-    # searched for ripples periodic in it)
-    input_quantity: str = "input"
     evidence_methods: tuple[str, ...] = ()
     candidate_library: LibraryFactory | None = None
     discovery_rounds: tuple[str, ...] = ("structure", "resolution")

@@ -38,6 +38,7 @@ from mbst.discovery.rounds.resolution import Resolution, resolution_round
 from mbst.discovery.rounds.stickslip import stick_slip_round
 from mbst.discovery.rounds.unexplained import (
     campaign_places,
+    driving_input,
     judge_catalogue_names,
     unexplained_round,
 )
@@ -89,6 +90,8 @@ class DiscoveryResult:
     # what the extended model's residual correlates with, per channel (rounds/unexplained.py)
     signatures: list = field(default_factory=list)
     places: dict[str, float] = field(default_factory=dict)  # each test's place in the campaign
+    # the extended model's residuals on the identification tests (the unexplained round's)
+    extended_residuals: list[TestResidual] = field(repr=False, default_factory=list)
 
     def summary(self) -> str:
         lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
@@ -178,7 +181,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
     t0 = time.perf_counter()
     places = campaign_places(state)
     learned = Learned([s for s in state.signatures if s.structured], places,
-                      model.input_quantity)
+                      driving_input(model))
     cmp = compare(state.campaign, state.base, state.p, state.residuals, settings, neural_model,
                   learned)
     timings["compare_s"] = time.perf_counter() - t0
@@ -206,7 +209,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         residual_tests=state.residuals, settings=settings,
         benchmark=_benchmark(model, base, state.p, failures),
         resolution=state.resolution, failures=failures, signatures=state.signatures,
-        places=places,
+        places=places, extended_residuals=state.extended_residuals,
     )
 
 

@@ -119,7 +119,7 @@ def feature_groups(t: TestResidual, channel: str, place: float, input_name: str 
                    ) -> dict[str, np.ndarray | dict[int, np.ndarray]]:
     """The generic library on one test: group → (samples, features), or, for a periodic
     group, harmonic → (samples, features). ``place``: the test's place in the campaign
-    (−½…½); ``input_name``: the driving input's name (``ModelDefinition.input_quantity``);
+    (−½…½); ``input_name``: the driving input's name (``SystemFamily.input_channel``);
     ``scenarios``: the cut-outs of the tests fitted together (the drift's blocks)."""
     twin = t.simulated[channel]
     groups: dict = {f"lag:{channel}": np.gradient(twin, t.dt_s)[:, None],

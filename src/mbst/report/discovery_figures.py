@@ -225,15 +225,14 @@ def stick_slip(result, path: Path) -> bool:
 def unexplained_signature(result, path: Path) -> bool:
     """The residual the catalogue leaves against what it correlates with, and the learned
     term, per structured channel (an ``unexplained`` finding). Returns whether drawn."""
-    from mbst.discovery.data import residual_data
+    from mbst.discovery.rounds.unexplained import driving_input
     from mbst.discovery.signature import abscissa, learned_term
 
     found = [s for s in result.signatures if s.structured][:3]
     if not found:
         return False
-    model = result.base.model
-    tests = [residual_data(result.base.prepared[r.id], result.extended_params)
-             for r in result.residual_tests]
+    drive = driving_input(result.base.model)
+    tests = result.extended_residuals
     places = result.places
     fig, axes = plt.subplots(len(found), 2, figsize=(11, 3.2 * len(found)), squeeze=False)
     for row, sig in zip(axes, found, strict=True):
@@ -241,12 +240,12 @@ def unexplained_signature(result, path: Path) -> bool:
         s = SCALE.get(ch, 1.0)
         logged = [t for t in tests if ch in t.measured]
         for t in logged:
-            x, xlabel = abscissa(t, sig.best, places.get(t.id, 0.0), model.input_quantity)
-            lt = learned_term(t, sig, places.get(t.id, 0.0), model.input_quantity)
+            x, xlabel = abscissa(t, sig.best, places.get(t.id, 0.0), drive)
+            lt = learned_term(t, sig, places.get(t.id, 0.0), drive)
             row[0].plot(x[::3], s * t.residual(ch)[::3], ".", ms=1.5, color="black", alpha=0.3)
             row[0].plot(x[::3], s * lt[::3], ".", ms=1.5, color="tab:orange", alpha=0.6)
         worst = max(logged, key=lambda t: float(np.std(t.residual(ch))))
-        lt = learned_term(worst, sig, places.get(worst.id, 0.0), model.input_quantity)
+        lt = learned_term(worst, sig, places.get(worst.id, 0.0), drive)
         row[1].plot(worst.time_s, s * worst.residual(ch), color="black", lw=0.8,
                     label="measured − extended")
         row[1].plot(worst.time_s, s * lt, color="tab:orange", lw=1.0, label="learned term")

@@ -25,6 +25,8 @@ import time
 
 import numpy as np
 
+from mbst.core.family import get_system
+from mbst.core.model import ModelDefinition
 from mbst.discovery.data import residual_data
 from mbst.discovery.signature import ChannelSignature, describe_channel, feature_names
 from mbst.discovery.state import DiscoveryState, Finding
@@ -33,6 +35,7 @@ log = logging.getLogger(__name__)
 
 # the confidence of a catalogue name that an outside signature explains as well
 DOUBTED_CONFIDENCE = 0.45
+
 
 def equally(sig: ChannelSignature, margin: float = 0.01) -> list[str]:
     """Other groups that predict the channel as well (within ``margin`` of the residual):
@@ -58,6 +61,12 @@ def reading(sig: ChannelSignature) -> str:
     also = f" (or equally {', '.join(same)}: these tests move them together)" if same else ""
     return (f"{sig.channel} follows a polynomial in {quantity}{also} (a gain, ratio or "
             "stiffness that varies with it)")
+
+
+def driving_input(model: ModelDefinition) -> str:
+    """The name of the input that drives the family's model (``SystemFamily.input_channel``:
+    an ``*_angle_rad`` input is searched for ripples periodic in it)."""
+    return get_system(model.name).input_channel
 
 
 def campaign_places(state: DiscoveryState) -> dict[str, float]:
@@ -94,7 +103,7 @@ def _describe(state: DiscoveryState) -> None:
     for ch in channels:
         sig = describe_channel(tests, ch, places, _noise_rms(state, ch),
                                seed=state.settings.identify.seed,
-                               input_name=state.model.input_quantity)
+                               input_name=driving_input(state.model))
         if sig is not None:
             signatures.append(sig)
     state.signatures = signatures
@@ -193,7 +202,7 @@ def judge_catalogue_names(findings: list[Finding], state: DiscoveryState) -> Non
                 base_of[sig.channel] = describe_channel(
                     state.residuals, sig.channel, places, sig.noise_rms,
                     seed=state.settings.identify.seed, surrogates=0,
-                    input_name=state.model.input_quantity)
+                    input_name=driving_input(state.model))
             why = _doubt(state, f, sig, base_of[sig.channel])
             if why:
                 f.confirmation = "in doubt"

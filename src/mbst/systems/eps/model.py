@@ -568,7 +568,6 @@ EPS_MODEL = ModelDefinition(
     carry_through=("suspended",),
     evidence_methods=("sparse", "neural"),
     candidate_library=EpsCandidateLibrary,
-    input_quantity="steering_angle_rad",
     discovery_rounds=("structure", "stick_slip", "unexplained", "resolution"),
     # the column's speed is the imposed input; the tires' has no internal signal
     element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},

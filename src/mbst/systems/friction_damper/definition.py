@@ -30,7 +30,6 @@ FRICTION_DAMPER_MODEL = ModelDefinition(
                          "load_cell": ("imposed_displacement",)},
     hysteresis=("input", "friction_force_n", "displacement [mm]", "friction force [N]", 1e3),
     evidence_methods=(),
-    input_quantity="displacement_m",
     discovery_rounds=("structure", "unexplained", "resolution"),
     benchmark=benchmark_record,
 )

@@ -32,7 +32,6 @@ PRISMATIC_MODEL = ModelDefinition(
     hysteresis=("rate:position_m", "motor_force_n", "velocity [mm/s] (measured)",
                 "motor force [N]", 1e3),
     evidence_methods=(),
-    input_quantity="driving_input",
     discovery_rounds=("structure", "equation_error", "unexplained", "resolution"),
     benchmark=benchmark_record,
     equation_error=equation_error,
