@@ -27,8 +27,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 # mbst bench's realism flags → BenchRealism fields
-_REALISM_FLAGS = ("draw_rig", "known_error", "draw_sizes", "noise_ar1", "quantise", "torque_lag_s",
-                  "offset_drift", "friction_drift", "cogging_nm", "rack_ratio_variation",
+_REALISM_FLAGS = ("draw_rig", "known_error", "known_sigma", "draw_sizes", "noise_ar1",
+                  "quantise", "torque_lag_s", "offset_drift", "friction_drift", "cogging_nm", "rack_ratio_variation",
                   "oversample", "smoothing", "plan_jitter")
 
 
@@ -193,6 +193,9 @@ def _add_realism_flags(p: argparse.ArgumentParser) -> None:
                    help="rig parameters drawn per seed across eps-model.md's typical ranges")
     g.add_argument("--known-error", type=float, metavar="FRACTION",
                    help="known inertias written up to ± this fraction off (geometry 10x less)")
+    g.add_argument("--known-sigma", type=float, metavar="FRACTION",
+                   help="known values written as priors {value, sigma}, sigma this fraction "
+                   "of the value (fitted with a prior term instead of held fixed)")
     g.add_argument("--draw-sizes", action=argparse.BooleanOptionalAction, default=None,
                    help="effect sizes not given on --effect drawn from production to worn")
     g.add_argument("--noise-ar1", type=float, metavar="A",

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -28,6 +28,14 @@ from mbst.identify.fitting import (
     prepare_test,
     solve,
     twins_of_tests,
+)
+from mbst.identify.priors import (
+    KnownCheck,
+    campaign_priors,
+    check_fixed_known,
+    check_priors,
+    known_notes,
+    prior_stages,
 )
 from mbst.io.campaign import Campaign, CampaignError
 
@@ -56,6 +64,8 @@ HELD_STAGE = "measured_points"
 # a stage cost above this multiple of what the sensor noise alone leaves is not the optimum
 # of a right model: on the compact plan the wrong basin sat at 200x, the right one at 0.7x
 FAR_ABOVE_NOISE = 10.0
+# a residual variance beyond this multiple of the sensor noise's re-weighs the stated priors
+PRIOR_REWEIGH = 1.5
 
 
 @dataclass
@@ -82,6 +92,8 @@ class Cascade:
     preid: dict
     warnings: list[str]
     prepared: dict[str, PreparedTest]
+    # the campaign's priors against their fitted values
+    known_checks: list[KnownCheck] = field(default_factory=list)
 
 
 @dataclass
@@ -97,6 +109,8 @@ class IdentifyResult:
     prepared: dict[str, PreparedTest] = field(repr=False, default_factory=dict)
     twins: dict[str, dict[str, np.ndarray]] = field(repr=False, default_factory=dict)
     model: ModelDefinition | None = field(repr=False, default=None)
+    # stated known values (priors and fixed ones) against what the data say of them
+    known_checks: list[KnownCheck] = field(default_factory=list)
 
     def summary(self) -> str:
         lines = [f"identified '{self.campaign}' in {self.wall_s:.1f} s "
@@ -152,8 +166,19 @@ def run_cascade(
     scales = channel_scales(id_tests)
 
     model = campaign.model()
+    for k in campaign.known:
+        if k not in model.param_index:
+            warnings.append(f"known '{k}' is not a parameter of the {model.name} model; "
+                            "it is not used")
     p = model.vector_from({k: v for k, v in campaign.known.items() if k in model.param_index},
                     base=base if base is not None else None)
+    # a stated prior is fitted in the stage that isolates its component, held by its σ
+    priors = {k: v for k, v in campaign_priors(campaign, model).items()
+              if only is None or k in only}
+    extra_free = dict(extra_free or {})
+    for scenario, names in prior_stages(model, priors, id_tests).items():
+        extra_free[scenario] = tuple(extra_free.get(scenario, ())) + names
+    settings = replace(settings, prior={**(settings.prior or {}), **priors}) if priors else settings
     preid = model.pre_identify(campaign, id_tests, p)
     for k, v in preid["values"].items():
         if only is not None and k not in only:
@@ -204,7 +229,7 @@ def run_cascade(
                 warnings.append(f"test '{pt.id}' ({scenario}) informs no free parameter")
             continue
         p, stage, notes = _fit_stage(model, scenario, tests, free, p, scales, preid["upper"],
-                                     settings, rng)
+                                     settings, rng, stated=frozenset(priors))
         fixed.update(free)
         stages.append(stage)
         warnings += notes
@@ -216,7 +241,7 @@ def run_cascade(
         # a stage sees only its own cut-out, the joint information sees them all
         free = list(dict.fromkeys(n for st in stages for n in st.free))
         p, stage, notes = _fit_stage(model, JOINT_STAGE, id_tests, free, p, scales,
-                                     preid["upper"], settings, rng)
+                                     preid["upper"], settings, rng, stated=frozenset(priors))
         stages.append(stage)
         warnings += notes
         if settings.progress:
@@ -226,17 +251,24 @@ def run_cascade(
         if only is None or n in only:
             warnings.append(f"'{n}' could not be identified: no test of a scenario that "
                             "informs it")
-    return Cascade(p, stages, preid, warnings, prepared)
+    checks = check_priors(campaign, model, p, stages)
+    warnings += known_notes(checks)
+    return Cascade(p, stages, preid, warnings, prepared, checks)
 
 
 def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest], free: list[str],
                p: np.ndarray, scales: dict[str, float], upper: dict[str, float],
-               settings: IdentifySettings, rng: np.random.Generator
+               settings: IdentifySettings, rng: np.random.Generator,
+               stated: frozenset[str] = frozenset()
                ) -> tuple[np.ndarray, StageResult, list[str]]:
-    """Fit ``free`` on ``tests`` from ``p`` (plus random restarts); flag bounds and blind spots."""
+    """Fit ``free`` on ``tests`` from ``p`` (plus random restarts); flag bounds and blind spots.
+
+    ``stated``: parameters whose prior the campaign states (it counts in their std errors).
+    """
     t0 = time.perf_counter()
     prob = FitProblem(tests, {pt.id: stage_channels(pt) for pt in tests}, free, p, scales,
-                      upper=upper, decimate=settings.decimate, prior=settings.prior)
+                      upper=upper, decimate=settings.decimate, prior=settings.prior,
+                      stated=stated)
     p_start = p.copy()
 
     def random_start() -> np.ndarray:
@@ -259,6 +291,13 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
     # a cost far above what the noise explains is a wrong basin (or a missing effect)
     fr = solve(prob, starts, max_nfev=settings.max_nfev, more_starts=random_start,
                max_more=settings.extra_starts, good_cost=FAR_ABOVE_NOISE * prob.noise_cost())
+    if prob.stated.any() and fr.noise_inflation > PRIOR_REWEIGH:
+        # the stated priors were weighed against sensor noise; the residual says how much
+        # less the data know: weigh them again and refit from where the first fit ended
+        prob.inflate_stated(fr.noise_inflation)
+        first = fr.starts
+        fr = solve(prob, [fr.p], max_nfev=settings.max_nfev)
+        fr.starts = first + fr.starts
     p = fr.p
     stage = StageResult(
         scenario=scenario, tests=[pt.id for pt in tests], free=list(free), cost=fr.cost,
@@ -306,21 +345,27 @@ def correlate(
 
 
 def identify(campaign: Campaign, settings: IdentifySettings | None = None,
-             controls: bool = True) -> IdentifyResult:
-    """Run the cascade and correlate on the held-out control tests.
+             controls: bool = True, check_known: bool = True) -> IdentifyResult:
+    """Run the cascade, check the stated known values and correlate on the control tests.
 
     ``controls=False`` leaves the control tests alone (discovery's base model: they
-    are simulated only once everything is decided).
+    are simulated only once everything is decided). ``check_known=False`` skips the
+    refits that test the fixed known values (priors are always checked).
     """
     settings = settings or IdentifySettings()
     t0 = time.perf_counter()
     fit = run_cascade(campaign, settings)
     p, prepared, warnings = fit.params, fit.prepared, fit.warnings
+    model = campaign.model()
+    fixed = (check_fixed_known(campaign, model, p, fit.stages, prepared, settings.decimate)
+             if check_known else [])
+    warnings += known_notes(fixed)
+    checks = fit.known_checks + fixed
     id_fit, id_twins = correlate([prepared[s.id] for s in campaign.identification_tests()], p)
     if not controls:
         return IdentifyResult(campaign.name, p, fit.stages, fit.preid, warnings,
                               id_fit.iloc[0:0], id_fit, time.perf_counter() - t0, prepared,
-                              id_twins, campaign.model())
+                              id_twins, model, checks)
     control_tests = [prepared[s.id] for s in campaign.control_tests()]
     if not control_tests:
         warnings.append("the campaign has no control test: the fit cannot be correlated "
@@ -328,4 +373,4 @@ def identify(campaign: Campaign, settings: IdentifySettings | None = None,
     corr, twins = correlate(control_tests, p)
     twins.update(id_twins)
     return IdentifyResult(campaign.name, p, fit.stages, fit.preid, warnings, corr, id_fit,
-                          time.perf_counter() - t0, prepared, twins, campaign.model())
+                          time.perf_counter() - t0, prepared, twins, model, checks)

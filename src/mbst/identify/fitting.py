@@ -225,6 +225,7 @@ class FitProblem:
         decimate: int = 1,
         prior_weight: float | None = None,
         prior: dict[str, tuple[float, float]] | None = None,
+        stated: frozenset[str] = frozenset(),
     ) -> None:
         self.tests = tests
         self.channels = channels
@@ -264,6 +265,25 @@ class FitProblem:
                 self.u_prior[j] = math.log(value) if self.log[j] else value / self.typ[j]
                 std_u = std_log if self.log[j] else abs(value) * std_log / self.typ[j]
                 self.prior_w[j] = floor / max(std_u, 1e-12)
+        # priors the campaign states (a datasheet value ± σ) are information like data: they
+        # count in the standard errors; a plan's range prior only steadies the search
+        self.stated = np.array([bool(prior) and n in prior and n in stated for n in self.free])
+        # how much the fitted residual's variance (model error, residual memory) exceeds the
+        # sensor noise the stated priors were weighted against (``inflate_stated``)
+        self.prior_inflation = 1.0
+
+    def inflate_stated(self, factor: float) -> None:
+        """Weigh the stated priors against residuals ``factor`` × the sensor noise's variance.
+
+        Data whose residual is larger or longer-correlated than white sensor noise carry
+        less information than their sample count says; a prior weighted against the sensor
+        noise alone is then overruled along every direction the data barely see.
+        """
+        factor = max(float(factor), 1.0)
+        self.prior_w = np.where(self.stated,
+                                self.prior_w * math.sqrt(factor / self.prior_inflation),
+                                self.prior_w)
+        self.prior_inflation = factor
 
     # coordinates ------------------------------------------------------------------
     def _to_u(self, theta: np.ndarray) -> np.ndarray:
@@ -424,6 +444,8 @@ class FitResult:
     # from); status of the kept start (scipy's least_squares: 0 = budget spent, > 0 converged)
     n_diverged: int = 0
     status: int = 0
+    # the residual's variance (with its memory) over what white sensor noise would give
+    noise_inflation: float = 1.0
 
 
 STALE_STARTS = 3
@@ -530,7 +552,16 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
     inv = np.zeros_like(sv)
     inv[sv > tol] = 1.0 / sv[sv > tol] ** 2
     bread = (vt.T * inv) @ vt
-    cov_u = bread @ hac_meat(jac, res.fun[:m], problem.block_sizes(), n) @ bread
+    meat = hac_meat(jac, res.fun[:m], problem.block_sizes(), n)
+    floor2 = problem.noise_floor() ** 2
+    inflation = float(np.trace(meat) / max(floor2 * np.trace(jac.T @ jac), 1e-300))
+    if problem.stated.any():
+        # a stated prior is one more measurement of its parameter, with the variance per
+        # unit of its weighted residual that it was weighted for
+        info_prior = np.diag((problem.prior_w * problem.stated) ** 2)
+        bread = np.linalg.pinv(jac.T @ jac + info_prior, hermitian=True)
+        meat = meat + problem.prior_inflation * floor2 * info_prior
+    cov_u = bread @ meat @ bread
     std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
     d = problem.dtheta_du(u)
     theta = problem._from_u(u)
@@ -543,6 +574,7 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
     for k, s in enumerate(sv):
         if s <= tol or s < 1e-6 * sv.max():
             weak |= np.abs(vt[k]) > 0.3
+    weak &= ~problem.stated  # its stated prior holds it
     span = problem.ub - problem.lb
     at_bound = (u - problem.lb < 1e-4 * span) | (problem.ub - u < 1e-4 * span)
     rel = np.where(np.abs(theta) > 0, std_theta / np.maximum(np.abs(theta), 1e-300), np.inf)
@@ -561,4 +593,5 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
         starts=costs,
         n_diverged=problem.n_diverged,
         status=int(res.status),
+        noise_inflation=inflation,
     )

@@ -170,7 +170,12 @@ class Campaign:
     name, system
         From ``campaign.yaml``; ``system`` names a registered system family.
     known
-        A-priori parameter values (SI units), as floats.
+        A-priori parameter values (SI units), as floats: fixed values and the
+        centres of priors alike.
+    priors
+        Name -> standard deviation (SI units) of the ``known`` values given as
+        a prior ``{value, sigma}``: fitted with a Gaussian prior term instead
+        of held fixed.
     tests
         Test entries in file order.
     extra
@@ -187,6 +192,7 @@ class Campaign:
     known: dict[str, float]
     tests: list[TestSpec]
     extra: dict = field(default_factory=dict)
+    priors: dict[str, float] = field(default_factory=dict)
     data: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False, compare=False)
     _model: Any = field(default=None, init=False, repr=False, compare=False)
 
@@ -336,7 +342,7 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
         raise fail(f"unknown system {system!r}; known systems: {', '.join(systems)}")
     family = get_system(system)
 
-    known = _parse_known(doc.get("known"), fail)
+    known, priors = _parse_known(doc.get("known"), fail)
 
     raw_tests = doc["tests"]
     if not isinstance(raw_tests, list):
@@ -377,23 +383,45 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
         known=known,
         tests=tests,
         extra=extra,
+        priors=priors,
     )
 
 
-def _parse_known(raw: Any, fail) -> dict[str, float]:
+def _known_number(value: Any, what: str, fail) -> float:
+    # bool is an int subclass but `true` is never a physical value.
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise fail(f"{what} is {value!r}, not a number")
+    if not math.isfinite(value):
+        raise fail(f"{what} is {value!r}, not a finite number")
+    return float(value)
+
+
+def _parse_known(raw: Any, fail) -> tuple[dict[str, float], dict[str, float]]:
+    """``known:`` as (values, prior sigmas): a number is fixed, ``{value, sigma}`` a prior."""
     if raw is None:
-        return {}
+        return {}, {}
     if not isinstance(raw, dict):
         raise fail(f"'known' must be a mapping, got {type(raw).__name__}")
     known: dict[str, float] = {}
+    priors: dict[str, float] = {}
     for key, value in raw.items():
-        # bool is an int subclass but `true` is never a physical value.
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise fail(f"known value '{key}' is {value!r}, not a number")
-        if not math.isfinite(value):
-            raise fail(f"known value '{key}' is {value!r}, not a finite number")
-        known[str(key)] = float(value)
-    return known
+        key = str(key)
+        if not isinstance(value, dict):
+            known[key] = _known_number(value, f"known value '{key}'", fail)
+            continue
+        missing = [k for k in ("value", "sigma") if k not in value]
+        if missing:
+            raise fail(f"known prior '{key}' lacks {' and '.join(missing)}: a prior is "
+                       "{value: ..., sigma: ...} in SI units")
+        known[key] = _known_number(value["value"], f"known prior '{key}': value", fail)
+        sigma = _known_number(value["sigma"], f"known prior '{key}': sigma", fail)
+        if not sigma > 0.0:
+            raise fail(f"known prior '{key}': sigma is {sigma!r}; it must be > 0 "
+                       "(a value known exactly is written as a plain number)")
+        if known[key] == 0.0:
+            raise fail(f"known prior '{key}': value is 0; a prior needs a non-zero centre")
+        priors[key] = sigma
+    return known, priors
 
 
 def _parse_test(entry: Any, index: int, family: SystemFamily, fail) -> TestSpec:
@@ -554,6 +582,7 @@ def write_campaign(
     extra: dict | None = None,
     fmt: str = "csv",
     overwrite: bool = False,
+    priors: dict[str, float] | None = None,
 ) -> Path:
     """Write a campaign directory atomically.
 
@@ -568,6 +597,8 @@ def write_campaign(
         Target directory; its parent is created if needed.
     name, system, known
         Top-level ``campaign.yaml`` values.
+    priors
+        Name -> sigma of the ``known`` values to write as a prior ``{value, sigma}``.
     tests
         ``(spec, frame)`` pairs in the order they should appear. Each frame is
         written to ``tests/<id>.<fmt>`` (``spec.file`` is replaced by that path)
@@ -612,7 +643,9 @@ def write_campaign(
         "format": FORMAT,
         "name": name,
         "system": system,
-        "known": {str(k): float(v) for k, v in known.items()},
+        "known": {str(k): ({"value": float(v), "sigma": float(priors[k])}
+                           if priors and k in priors else float(v))
+                  for k, v in known.items()},
     }
     for key, value in (extra or {}).items():
         if key in _TOP_KEYS:
@@ -740,7 +773,9 @@ def summarize_campaign(campaign: Campaign) -> str:
     if campaign.known:
         lines.append("known:")
         width = max(len(k) for k in campaign.known)
-        lines += [f"  {k:<{width}} = {v:.6g}" for k, v in campaign.known.items()]
+        lines += [f"  {k:<{width}} = {v:.6g}"
+                  + (f" ± {campaign.priors[k]:.3g} (prior)" if k in campaign.priors else "")
+                  for k, v in campaign.known.items()]
     else:
         lines.append("known:    (none)")
     for key, value in campaign.extra.items():

@@ -43,11 +43,25 @@ class Unknown:
     low: float
     high: float
     nominal: float
+    # a stated prior's σ/value (``known: {value, sigma}``); None: the range is the prior
+    stated_std_log: float | None = None
 
     @property
     def prior_std_log(self) -> float:
-        """Std of ln θ under a uniform prior in ln θ over the range."""
+        """Std of ln θ: the stated prior's, else a uniform prior in ln θ over the range."""
+        if self.stated_std_log is not None:
+            return self.stated_std_log
         return (math.log(self.high) - math.log(self.low)) / math.sqrt(12.0)
+
+
+def stated_prior(name: str, value: float, sigma: float) -> Unknown:
+    """A known value given as a prior ``{value, sigma}``: an unknown the prior informs.
+
+    Its sweep range is the uniform one with the prior's σ in ln θ (±√3 σ).
+    """
+    s = sigma / value
+    return Unknown(name, value * math.exp(-math.sqrt(3.0) * s),
+                   value * math.exp(math.sqrt(3.0) * s), value, s)
 
 
 @dataclass(frozen=True)
@@ -128,6 +142,18 @@ class PlanConfig:
         """Model vector at the centre of the ranges (other parameters at their defaults)."""
         return vector_from({**self.known, **{u.name: u.nominal for u in self.unknowns}})
 
+    def stated_priors(self) -> dict[str, float]:
+        """Sigma (SI) of each known value the config gives as a prior ``{value, sigma}``."""
+        return {u.name: u.nominal * u.stated_std_log for u in self.unknowns
+                if u.stated_std_log is not None}
+
+    def campaign_known(self, defaults: dict[str, float]) -> dict[str, float]:
+        """The ``known`` values a planned campaign states (``defaults`` where none is given)."""
+        priors = self.stated_priors()
+        base = {k: v for k, v in defaults.items() if k not in priors} if not self.known else {}
+        return {**base, **self.known, **{u.name: u.nominal for u in self.unknowns
+                                         if u.name in priors}}
+
     def sensor(self, name: str) -> SensorCandidate:
         return next(s for s in self.sensors if s.name == name)
 
@@ -185,6 +211,22 @@ class _Reader:
         if not isinstance(obj, list) or len(obj) < min_len:
             raise self.fail(key, f"expected a list of at least {min_len} entries")
         return obj
+
+
+def _known(r: _Reader, doc) -> tuple[dict[str, float], list[Unknown]]:
+    """``known:``: fixed values, and the priors ``{value, sigma}`` (unknowns they inform)."""
+    known, priors = {}, []
+    for k, v in r.mapping(doc, "known").items():
+        if k not in PARAM_INDEX or PARAM_SPECS[PARAM_INDEX[k]].kind != "known":
+            raise r.fail(f"known.{k}", "not an a-priori parameter of the EPS model")
+        if isinstance(v, dict):
+            entry = r.mapping(v, f"known.{k}", ("value", "sigma"))
+            value = r.number(entry.get("value"), f"known.{k}.value", lo=0.0, strict_lo=True)
+            sigma = r.number(entry.get("sigma"), f"known.{k}.sigma", lo=0.0, strict_lo=True)
+            priors.append(stated_prior(k, value, sigma))
+        else:
+            known[k] = r.number(v, f"known.{k}", lo=0.0, strict_lo=True)
+    return known, priors
 
 
 def _unknowns(r: _Reader, doc) -> list[Unknown]:
@@ -296,12 +338,8 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
     doc = r.mapping(doc, "", TOP_KEYS)
     if doc.get("format", FORMAT) != FORMAT:
         raise r.fail("format", f"expected '{FORMAT}', got {doc.get('format')!r}")
-    known = r.mapping(doc.get("known", {}), "known")
-    for k, v in known.items():
-        if k not in PARAM_INDEX or PARAM_SPECS[PARAM_INDEX[k]].kind != "known":
-            raise r.fail(f"known.{k}", "not an a-priori parameter of the EPS model")
-        r.number(v, f"known.{k}", lo=0.0, strict_lo=True)
-    unknowns = _unknowns(r, doc.get("unknowns"))
+    known, priors = _known(r, doc.get("known", {}))
+    unknowns = _unknowns(r, doc.get("unknowns")) + priors
     for u in unknowns:
         if u.name in known:
             raise r.fail(f"unknowns.{u.name}", "is also listed under 'known'")

@@ -141,7 +141,8 @@ def _identify(cfg: PlanConfig, sens: Sensitivity, plan: Plan, p_true: np.ndarray
               folder: Path, name: str) -> _Identified:
     tests = bench_tests(cfg, sens, plan, p_true, seed)
     camp_dir = write_campaign(folder / name, name=name, system=SYSTEM_NAME,
-                              known=dict(cfg.known or KNOWN), tests=tests,
+                              known=cfg.campaign_known(KNOWN), priors=cfg.stated_priors(),
+                              tests=tests,
                               extra={"generated_by": "mbst plan (proof)", "seed": seed},
                               overwrite=True)
     return _cascade(cfg, read_campaign(camp_dir), p_true, seed)

@@ -38,7 +38,9 @@ def campaign_skeleton(cfg: PlanConfig, sens: Sensitivity, plan: Plan) -> dict:
         "format": CAMPAIGN_FORMAT,
         "name": cfg.name,
         "system": SYSTEM_NAME,
-        "known": dict(cfg.known or KNOWN),
+        "known": {k: ({"value": v, "sigma": cfg.stated_priors()[k]}
+                      if k in cfg.stated_priors() else v)
+                  for k, v in cfg.campaign_known(KNOWN).items()},
         "planned_by": "mbst plan",
         "sensors": plan.logged,
         "tests": tests,

@@ -43,6 +43,9 @@ def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
             "at_bound": at_bound.get(spec.name, False),
             "identifiable": ident.get(spec.name),
         }
+    for check in result.known_checks:
+        if check.name in params:
+            params[check.name]["stated"] = check.record()
     return {
         "format": "mbst-params/1",
         "campaign": result.campaign,
@@ -97,9 +100,29 @@ def markdown_summary(result: IdentifyResult) -> str:
                          f"{r.pearson_r:.4f} | {r.r2:.4f} | {r.max_abs_error:.4g} |")
     else:
         lines.append("No control test in this campaign.")
+    lines += known_section(result)
     lines += ["", "## Warnings", ""]
     lines += [f"- {w}" for w in result.warnings] or ["- none"]
     return "\n".join(lines) + "\n"
+
+
+def known_section(result: IdentifyResult) -> list[str]:
+    """The stated known values against what the data say of them (priors and fixed values)."""
+    if not result.known_checks:
+        return []
+    lines = ["", "## Known values against the data", "",
+             "A prior `{value, sigma}` is fitted with its σ; a value held fixed is checked by "
+             "one Gauss–Newton step with it freed beside its stage's parameters. Beyond 3 σ "
+             "the data contradict it: it is reported here, never changed silently.", "",
+             "| parameter | stated | from the data | stage | distance | verdict |",
+             "|---|---|---|---|---|---|"]
+    for c in result.known_checks:
+        stated = (f"{c.value:.4g} ± {c.sigma:.3g}" if c.sigma is not None
+                  else f"{c.value:.4g} (fixed)")
+        verdict = "**contradicted**" if c.contradicted else "consistent"
+        lines.append(f"| {c.name} [{c.unit}] | {stated} | {c.fitted:.4g} ± {c.std_error:.3g} | "
+                     f"{c.stage} | {abs(c.z):.1f} σ | {verdict} |")
+    return lines
 
 
 def run_identify(campaign: Campaign, out_dir: str | Path,

@@ -96,7 +96,7 @@ def write_preprocessed(campaign: Campaign, out_dir: str | Path, tau_s: float,
         write_campaign(
             tmp / "campaign", name=campaign.name, system=campaign.system, known=campaign.known,
             tests=[(pt.spec, preprocessed_frame(campaign, pt)) for pt in tests],
-            extra=extra,
+            extra=extra, priors=campaign.priors,
         )
         table.to_csv(tmp / "noise.csv", index=False, float_format="%.6g")
         write_markdown(tmp / "preprocess.md", _markdown(campaign, tau_s, table))

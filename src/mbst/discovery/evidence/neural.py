@@ -227,6 +227,9 @@ class NeuralResidual:
     substeps : float
         rk4 steps per 4 ms grid sample (0.5: one 8 ms step per two samples, ample for the
         ~14 Hz ringing, half the cost of one per sample).
+    signals : sequence of str
+        Input and base-model signals used as features, those a test has (default: the
+        EPS rig's ``FEATURE_SIGNALS``; another family passes its own internal signals).
 
     Attributes
     ----------
@@ -253,8 +256,10 @@ class NeuralResidual:
 
     def __init__(self, latent: int = 3, hidden: int = 16, window_s: float = 0.5,
                  iterations: int = 200, seed: int = 0, batch: int = 32,
-                 learning_rate: float = 3e-2, substeps: float = 0.5) -> None:
+                 learning_rate: float = 3e-2, substeps: float = 0.5,
+                 signals: Sequence[str] = FEATURE_SIGNALS) -> None:
         self.latent = latent
+        self.signals = tuple(signals)
         self.hidden = hidden
         self.window_s = window_s
         self.iterations = iterations
@@ -328,7 +333,7 @@ class NeuralResidual:
                                key=lambda c: (c != "steering_torque_nm", c))
         self.scenarios = sorted({t.scenario for t in train})
         sigs = [_signals(t) for t in train]
-        names = [n for n in FEATURE_SIGNALS if any(n in s for s in sigs)]
+        names = [n for n in self.signals if any(n in s for s in sigs)]
         stacked = {n: np.concatenate([s.get(n, np.zeros(len(t.time_s)))
                                       for s, t in zip(sigs, train)]) for n in names}
         # a signal constant over the whole campaign carries no information

@@ -334,6 +334,11 @@ class BenchRecipe:
         rig = self.rig_values()
         return written_known(self.seed, {k: rig[k] for k in KNOWN}, self.realism.known_error)
 
+    def priors(self) -> dict[str, float]:
+        """Sigma of each known value written as a prior (``realism.known_sigma``)."""
+        sigma = self.realism.known_sigma
+        return {k: sigma * abs(v) for k, v in self.known().items()} if sigma > 0 else {}
+
     def planned(self) -> list[PlannedTest]:
         plan = self.plan or demo_plan()
         return [replace(pt, input=jittered_input(pt.input, self.seed, i, self.realism.plan_jitter))
@@ -470,6 +475,7 @@ def truth_record(recipe: BenchRecipe) -> dict:
         "effects": effects,
         "realism": recipe.realism.as_record(),
         "known_written": recipe.known(),
+        "known_sigma_written": recipe.priors(),
         "params": model.as_dict(p),
     }
 
@@ -482,7 +488,7 @@ def run_bench(out_dir: str | Path, recipe: BenchRecipe, overwrite: bool = True) 
     camp = write_campaign(
         out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=recipe.known(), tests=tests,
         extra={"generated_by": "mbst bench", "seed": recipe.seed, **recipe.campaign_extra()},
-        overwrite=overwrite,
+        overwrite=overwrite, priors=recipe.priors(),
     )
     write_json(out / "truth.json", truth_record(recipe))
     return camp

@@ -94,7 +94,9 @@ class BenchRealism:
     """What the bench does differently from identification (all off: the plain bench).
 
     ``draw_rig``: rig parameters drawn per seed. ``known_error``: the known values
-    written to ``campaign.yaml`` off by up to ± this fraction. ``draw_sizes``:
+    written to ``campaign.yaml`` off by up to ± this fraction; ``known_sigma``: they
+    are written as priors ``{value, sigma}`` with sigma this fraction of the
+    value (0: plain numbers, held fixed). ``draw_sizes``:
     effect sizes not given on ``--effect`` drawn from production to worn.
     ``noise_ar1``, ``quantise``, ``torque_lag_s``, ``offset_drift``: sensor
     realities. ``friction_drift``: Coulomb levels that fall by this fraction as the
@@ -109,6 +111,7 @@ class BenchRealism:
 
     draw_rig: bool = False
     known_error: float = 0.0
+    known_sigma: float = 0.0
     draw_sizes: bool = False
     noise_ar1: float = 0.0
     quantise: bool = False
