@@ -257,6 +257,15 @@ def test_emps_discovery_names_direction_dependent_friction(emps):
     assert bench["open_loop_fit_percent_test"] > \
         bench["open_loop_fit_percent_test_output_error_parameters"]
     assert "Published benchmark measures" in (out / "discovery.md").read_text()
+    # the hybrid row (#33): physics + neural residual open loop, trained on the
+    # identification run only, scored on the test run beside the same physics
+    hybrid = bench["hybrid"]
+    assert "error" not in hybrid, hybrid.get("error")
+    assert hybrid["trained_on"] == ["emps_identification"]
+    assert hybrid["physics_open_loop_fit_percent_test"] == pytest.approx(
+        bench["open_loop_fit_percent_test"], abs=1e-5)
+    assert 50.0 < hybrid["open_loop_fit_percent_test"] <= 100.0
+    assert "Physics + neural residual, open loop" in (out / "discovery.md").read_text()
 
 
 def test_identify_command_runs_the_axis_through_the_eps_code_path(tmp_path, capsys):

@@ -130,9 +130,11 @@ class ModelDefinition:
         phase-free test for Stribeck friction), ``equation_error`` (for families with
         an inverse model, ``equation_error`` below), ``resolution``.
     benchmark
-        ``benchmark(base_result, extended_params) -> dict`` of family-specific
-        figures of merit (EMPS: the published error measures), written as
-        ``benchmark.json`` beside ``discovery.json``.
+        ``benchmark(base_result, extended_params, learner) -> dict`` of
+        family-specific figures of merit (EMPS: the published error measures),
+        written as ``benchmark.json`` beside ``discovery.json``. ``learner``
+        (``discovery.evidence.hybrid.neural_correction``, or ``None``) trains a
+        neural residual on identification runs for a physics + neural row.
     stages_of
         The cascade stages a prepared test serves (default: its scenario's;
         the EPS rig sends powered tests to its assist stages, and engine-off

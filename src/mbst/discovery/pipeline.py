@@ -31,6 +31,7 @@ import pandas as pd
 from mbst.discovery.compare import Learned, compare, mean_gain
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.evidence.collect import neural_evidence, sparse_evidence
+from mbst.discovery.evidence.hybrid import neural_correction
 from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.rounds.catalogue import proposal_finding, structure_rounds
 from mbst.discovery.rounds.equation_error import equation_error_round
@@ -208,7 +209,8 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         comparison=cmp.table, gain=gain, wall_s=time.perf_counter() - t_start,
         timings=timings, twins=cmp.twins, neural_model=neural_model,
         residual_tests=state.residuals, settings=settings,
-        benchmark=_benchmark(model, base, state.p, failures),
+        benchmark=_benchmark(model, base, state.p, failures,
+                             neural_correction if settings.neural else None),
         resolution=state.resolution, failures=failures, signatures=state.signatures,
         places=places, extended_residuals=state.extended_residuals,
     )
@@ -228,12 +230,14 @@ def _learned_gain(findings: list[Finding], table: pd.DataFrame) -> None:
                 float(means["physics+learned"] - means["extended"]), 3)
 
 
-def _benchmark(model, base: IdentifyResult, p: np.ndarray, failures: list[str]) -> dict | None:
+def _benchmark(model, base: IdentifyResult, p: np.ndarray, failures: list[str],
+               learner: Callable | None) -> dict | None:
     """The family's published figures of merit; a failure there costs the table only."""
     if model.benchmark is None:
         return None
     try:
-        return model.benchmark(base, p)
+        # the neural residual is discovery's; the family's benchmark gets it handed over
+        return model.benchmark(base, p, learner=learner)
     except Exception as exc:  # a benchmark table must never sink the discovery
         failures.append(f"benchmark table: {type(exc).__name__}: {exc}")
         log.warning("benchmark table failed: %s: %s", type(exc).__name__, exc)

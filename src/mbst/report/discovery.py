@@ -310,7 +310,22 @@ def benchmark_table(bench: dict) -> list[str]:
                   "the cascade's output-error parameters it is "
                   f"{fmt(base.get(f'{key}_output_error_parameters'))} (base) and "
                   f"{fmt(bench[f'{key}_output_error_parameters'])} (extended)."]
+    lines += _hybrid_lines(bench.get("hybrid"))
     return lines
+
+
+def _hybrid_lines(hybrid: dict | None) -> list[str]:
+    """The physics + neural residual row of the benchmark, or why it is missing."""
+    if not hybrid:
+        return []
+    if "error" in hybrid:
+        return ["", f"Physics + neural residual (open loop): not computed ({hybrid['error']})."]
+    ident = ", ".join(f"{v:.4g} %" for v in hybrid["open_loop_fit_percent_identification"].values())
+    return ["", f"Physics + neural residual, open loop on the test run: FIT "
+            f"**{hybrid['open_loop_fit_percent_test']:.4g} %** against "
+            f"{hybrid['physics_open_loop_fit_percent_test']:.4g} % for the physics alone "
+            f"(trained on {', '.join(hybrid['trained_on'])} only, where it reaches {ident}; "
+            f"correction gain {', '.join(f'{g:.2f}' for g in hybrid['correction_gain'].values())})."]
 
 
 def run_discover(campaign: Campaign, out_dir: str | Path,

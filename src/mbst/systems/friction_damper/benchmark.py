@@ -37,9 +37,9 @@ def _test_record(pt, models: dict[str, np.ndarray]) -> dict:
     return rec
 
 
-def benchmark_record(base, p_ext: np.ndarray) -> dict:
+def benchmark_record(base, p_ext: np.ndarray, learner=None) -> dict:
     """``benchmark.json``: extended and base model on every control test, beside the
-    published model where the test carries its scores."""
+    published model where the test carries its scores (``learner``: not used yet)."""
     model = base.model
     controls = [pt for pt in base.prepared.values() if pt.spec.role == "control"
                 and "friction_force_n" in pt.raw]
