@@ -133,9 +133,10 @@ def _freed_refit(model, tests, free, names, params, scales, decimate, stage
     prob = FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free + names, params,
                       scales, decimate=decimate)
     fr = solve(prob, [params], max_nfev=FREED_NFEV)
+    # a value the stage's tests do not move at all (zero sensitivity) is not checked
     return [KnownCheck(k, model.spec(k).unit, float(params[model.param_index[k]]), None,
                        float(fr.p[model.param_index[k]]), fr.std_error[k], stage)
-            for k in names]
+            for k in names if fr.std_error[k] > 0.0]
 
 
 def known_notes(checks: list[KnownCheck]) -> list[str]:
