@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -210,7 +211,8 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         timings=timings, twins=cmp.twins, neural_model=neural_model,
         residual_tests=state.residuals, settings=settings,
         benchmark=_benchmark(model, base, state.p, failures,
-                             neural_correction if settings.neural else None),
+                             partial(neural_correction, seed=settings.identify.seed)
+                             if settings.neural else None),
         resolution=state.resolution, failures=failures, signatures=state.signatures,
         places=places, extended_residuals=state.extended_residuals,
     )

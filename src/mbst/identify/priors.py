@@ -22,6 +22,8 @@ from mbst.identify.fitting import FitProblem, PreparedTest, channel_scales, solv
 
 # a stated value the data put further than this many standard deviations away is contradicted
 CONTRADICTED_SIGMA = 3.0
+# a prior whose posterior σ keeps this share of its own was not informed by the tests
+UNINFORMED_SHARE = 0.9
 # iterations of the refit that frees a fixed known value beside its stage's parameters
 FREED_NFEV = 15
 
@@ -34,7 +36,7 @@ class KnownCheck:
     unit: str
     value: float  # as the campaign states it
     sigma: float | None  # its prior's σ; None for a value held fixed
-    fitted: float  # the fit's value (prior) or where one step from the fit takes it (fixed)
+    fitted: float  # the fit's value (prior) or where the freed refit takes it (fixed)
     std_error: float  # of ``fitted``
     stage: str
 
@@ -48,10 +50,25 @@ class KnownCheck:
     def contradicted(self) -> bool:
         return bool(np.isfinite(self.z)) and abs(self.z) > CONTRADICTED_SIGMA
 
+    @property
+    def informed(self) -> bool:
+        """Whether the tests say anything of it: a posterior narrower than the prior (prior),
+        a standard error below half the value (fixed). Else "consistent" would mean nothing."""
+        if self.sigma is not None:
+            return self.std_error < UNINFORMED_SHARE * self.sigma
+        return self.std_error < 0.5 * abs(self.value)
+
+    @property
+    def verdict(self) -> str:
+        if self.contradicted:
+            return "contradicted"
+        return "consistent" if self.informed else "not informed by these tests"
+
     def record(self) -> dict:
         return {"value": self.value, "sigma": self.sigma, "fitted": self.fitted,
                 "std_error": self.std_error, "stage": self.stage, "z": self.z,
-                "held_fixed": self.sigma is None, "contradicted": self.contradicted}
+                "held_fixed": self.sigma is None, "contradicted": self.contradicted,
+                "verdict": self.verdict}
 
     def sentence(self) -> str:
         stated = (f"{self.value:.4g} ± {self.sigma:.3g} {self.unit} (prior)"

@@ -34,12 +34,12 @@ def campaign_skeleton(cfg: PlanConfig, sens: Sensitivity, plan: Plan) -> dict:
         tests.append({"id": tid, "file": f"tests/{tid}.csv", "scenario": cell.scenario,
                       "input": dict(cell.input), "motor": cell.motor, "role": role,
                       "channels": logged_channels(cell.scenario, plan.logged)})
+    priors = cfg.stated_priors()
     return {
         "format": CAMPAIGN_FORMAT,
         "name": cfg.name,
         "system": SYSTEM_NAME,
-        "known": {k: ({"value": v, "sigma": cfg.stated_priors()[k]}
-                      if k in cfg.stated_priors() else v)
+        "known": {k: ({"value": v, "sigma": priors[k]} if k in priors else v)
                   for k, v in cfg.campaign_known(KNOWN).items()},
         "planned_by": "mbst plan",
         "sensors": plan.logged,

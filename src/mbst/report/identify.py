@@ -112,14 +112,15 @@ def known_section(result: IdentifyResult) -> list[str]:
         return []
     lines = ["", "## Known values against the data", "",
              "A prior `{value, sigma}` is fitted with its σ; a value held fixed is checked by "
-             "one Gauss–Newton step with it freed beside its stage's parameters. Beyond 3 σ "
-             "the data contradict it: it is reported here, never changed silently.", "",
+             "a short refit of its stage with it freed beside the stage's parameters (the "
+             "fit itself keeps the stated value). Beyond 3 σ the data contradict it: it is "
+             "reported here, never changed silently.", "",
              "| parameter | stated | from the data | stage | distance | verdict |",
              "|---|---|---|---|---|---|"]
     for c in result.known_checks:
         stated = (f"{c.value:.4g} ± {c.sigma:.3g}" if c.sigma is not None
                   else f"{c.value:.4g} (fixed)")
-        verdict = "**contradicted**" if c.contradicted else "consistent"
+        verdict = f"**{c.verdict}**" if c.contradicted else c.verdict
         lines.append(f"| {c.name} [{c.unit}] | {stated} | {c.fitted:.4g} ± {c.std_error:.3g} | "
                      f"{c.stage} | {abs(c.z):.1f} σ | {verdict} |")
     return lines
