@@ -31,6 +31,7 @@ include: "workflow/rules/identify.smk"
 include: "workflow/rules/discover.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/plan.smk"
+include: "workflow/rules/resolve.smk"
 
 
 rule all:
@@ -45,3 +46,7 @@ rule all:
         "results/summary.csv",
         # campaign planning (workflow/rules/plan.smk), only when `plan: enabled: true`
         ["results/plan/plan.json"] if config.get("plan", {}).get("enabled", False) else [],
+        # the next tests that decide what discovery left open (workflow/rules/resolve.smk)
+        expand("results/{campaign}/resolve/resolve.json", campaign=CAMPAIGNS)
+        if config.get("resolve", {}).get("enabled", False) and config["discover"]["enabled"]
+        else [],

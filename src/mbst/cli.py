@@ -46,6 +46,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         PLANS,
         BenchRecipe,
         parse_effect,
+        plan_from_campaign,
         run_bench,
     )
 
@@ -58,9 +59,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     sensors = tuple(DEFAULT_SENSORS)
     if args.sensors:
         sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip())
+    try:
+        plan = plan_from_campaign(args.tests_from) if args.tests_from else PLANS[args.plan]()
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     recipe = BenchRecipe(effects=effects, seed=args.seed, noise_scale=args.noise_scale,
                          sensors=sensors, sample_rate_hz=args.sample_rate_hz, name=args.name,
-                         plan=PLANS[args.plan](), assist_characteristic=args.assist_characteristic,
+                         plan=plan, assist_characteristic=args.assist_characteristic,
                          realism=_bench_realism(args))
     try:
         camp = run_bench(args.out, recipe)
@@ -135,6 +140,10 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from mbst.plan.config import PlanError, load_plan
     from mbst.plan.run import run_plan
 
+    if args.resolve:
+        return _cmd_resolve(args)
+    if not args.plan:
+        raise UsageError("give a planning config (e.g. config/plan.yaml) or --resolve DISCOVERY")
     try:
         cfg = load_plan(args.plan)
     except PlanError as exc:
@@ -144,6 +153,28 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(result.summary())
         print(f"wrote {args.out}/campaign.yaml, plan.md, tables and figures")
+    return 0
+
+
+def _cmd_resolve(args: argparse.Namespace) -> int:
+    from mbst.io.campaign import CampaignError
+    from mbst.io.outputs import atomic_output_dir
+    from mbst.plan.resolve import ResolveError, resolve, write_resolve
+
+    if args.plan:
+        raise UsageError("--resolve designs from the discovery record and its campaign; "
+                         "leave out the planning config")
+    try:
+        result = resolve(args.resolve, targets=args.target, campaign_dir=args.campaign,
+                         budget_share=args.budget_share, seed=args.seed)
+    except (ResolveError, CampaignError) as exc:
+        raise UsageError(str(exc)) from None
+    with atomic_output_dir(args.out) as tmp:
+        write_resolve(tmp, result, str(args.resolve))
+    if not args.quiet:
+        print(result.summary())
+        print(f"wrote {args.out}/campaign.yaml (the campaign with the tests added), resolve.md, "
+              "resolve.json, candidates.csv, figures/")
     return 0
 
 
@@ -256,6 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="test plan: seed 000's demo (default), a short passive one, seed 001's "
                    "powered layout (engine off/on, free/loaded wheels, 0.01/0.5/1 Hz, modes "
                    "normal and city, 60/100/120 km/h) or its short version")
+    p.add_argument("--tests-from", metavar="CAMPAIGN", help="run the tests of this "
+                   "campaign.yaml instead of --plan (e.g. the one `mbst plan --resolve` writes: "
+                   "the campaign's tests in their order, then the added ones)")
     p.add_argument("--assist-characteristic", default="eps", choices=["eps", "hps"],
                    help="power-steer curve of the powered tests: EPS c1·T + c2·sign(T)·|T|^c3 "
                    "or HPS c1·sign(T)·(e^|T| − 1)")
@@ -313,13 +347,27 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("plan", "plan a campaign before running it: sensors, cut-outs and inputs that "
             "identify every unknown at the lowest cost (seed 000 'simulation for testing')")
-    p.add_argument("plan", help="planning config (mbst-plan/1), e.g. config/plan.yaml")
+    p.add_argument("plan", nargs="?", help="planning config (mbst-plan/1), e.g. "
+                   "config/plan.yaml (not with --resolve)")
     p.add_argument("--out", required=True, help="output folder: campaign.yaml skeleton, "
                    "plan.md, ranking tables, figures")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--proof", action="store_true",
                    help="run the planned-vs-naive bench proof (default: the config's proof.enabled)")
     g.add_argument("--no-proof", action="store_true", help="skip the bench proof")
+    r = p.add_argument_group("the next tests when discovery could not decide (docs/loop.md)")
+    r.add_argument("--resolve", metavar="DISCOVERY", help="discovery.json (or its folder): "
+                   "design the tests that decide what it left open — the pairs its resolution "
+                   "step marked below resolution, and any --target")
+    r.add_argument("--target", action="append", default=[],
+                   metavar="EFFECT:COMPONENT[:param=value,...]", help="a pair and size to "
+                   "decide as well (repeatable), e.g. backlash:worm_gear:width_rad=0.005")
+    r.add_argument("--campaign", help="the campaign discovery ran on (default: the folder "
+                   "discovery.json names)")
+    r.add_argument("--budget-share", type=float, default=0.5, metavar="FRACTION",
+                   help="most test time to add, as a share of the campaign's identification "
+                   "test time (default 0.5)")
+    r.add_argument("--seed", type=int, default=0, help="noise of the predicted tests")
     p.set_defaults(func=_cmd_plan)
 
     p = add("import", "convert a public benchmark's files into a campaign")

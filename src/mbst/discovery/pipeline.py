@@ -25,6 +25,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -94,6 +95,9 @@ class DiscoveryResult:
     places: dict[str, float] = field(default_factory=dict)  # each test's place in the campaign
     # the extended model's residuals on the identification tests (the unexplained round's)
     extended_residuals: list[TestResidual] = field(repr=False, default_factory=list)
+    # what the resolution step judged with (``mbst plan --resolve`` designs with the same):
+    # the campaign's folder, each stage's free parameters, the compensating parameters
+    stages: dict = field(default_factory=dict)
 
     def summary(self) -> str:
         lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
@@ -215,6 +219,9 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
                              if settings.neural else None),
         resolution=state.resolution, failures=failures, signatures=state.signatures,
         places=places, extended_residuals=state.extended_residuals,
+        stages={"campaign_path": str(Path(state.campaign.path).resolve()), "stage_free": state.cascade_free,
+                "compensating": state.compensating(), "tau_s": settings.identify.tau_s,
+                "decimate": settings.identify.decimate},
     )
 
 

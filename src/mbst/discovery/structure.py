@@ -236,6 +236,11 @@ class StageScorer:
                                for ch in pt.measured]
         return out, blocks
 
+    def cost_and_residuals(self, p: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Data cost of ``p`` per test and its unweighted residual blocks."""
+        costs, blocks = self._evaluate(p[None], residuals=True)
+        return costs[0], blocks
+
     def reset_start(self, p: np.ndarray) -> np.ndarray:
         """``p`` with the compensating parameters back at their typical values."""
         q = np.array(p, float)

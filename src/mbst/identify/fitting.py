@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 from scipy.optimize import least_squares
 
 from mbst.core.filtering import (
@@ -81,8 +82,13 @@ def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
             f"{done.get('from', '?') if isinstance(done, dict) else done}); fit the raw "
             "campaign it came from, or pass --tau 0",
             campaign=campaign.name, path=campaign.path / "campaign.yaml")
-    model = campaign.model()
-    df = campaign.frame(spec.id)
+    return prepare_frame(campaign.model(), campaign.frame(spec.id), spec, tau_s, input_window_s)
+
+
+def prepare_frame(model: ModelDefinition, df: pd.DataFrame, spec: TestSpec, tau_s: float,
+                  input_window_s: float = INPUT_WINDOW_S) -> PreparedTest:
+    """``prepare_test`` of a logged frame that is not (yet) in a campaign: a test the
+    planner predicts goes through the very preprocessing a logged one will."""
     t = df["time_s"].to_numpy(float)
     dt = float((t[-1] - t[0]) / (len(t) - 1))
     signal, rate, inputs = model.prepare_inputs(df, dt, spec, input_window_s)

@@ -67,6 +67,8 @@ def discovery_record(result: DiscoveryResult) -> dict:
             for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
         },
         "resolution": [r.record() for r in result.resolution],
+        # what `mbst plan --resolve` designs the next tests with
+        "stages": result.stages,
         # what the extended model's residual correlates with, channel by channel
         "unexplained": [signature_record(s) for s in result.signatures],
         "failures": list(result.failures),
@@ -245,7 +247,8 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
              f"the detection limit of these tests ({100 * st.min_relative_gain:.0f} % and "
              f"{figures.aic_margin_text(result)}). An estimate: a pair marked *not resolved* can "
              "be in the rig without any finding here; longer or other tests would be needed "
-             "(figure: `figures/resolution.png`).",
+             "(figure: `figures/resolution.png`): `mbst plan --resolve` on this folder "
+             "designs them (docs/loop.md).",
              "", "| effect | component | stage | share at realistic size | ΔAIC | "
              "detection limit (smallest size resolved) |", "|---|---|---|---|---|---|"]
     # the blind spots first, then the pairs that need the largest size

@@ -125,7 +125,7 @@ def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float) -> di
     return out
 
 
-def _stage_signals(scorer: StageScorer, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def effect_signals(scorer: StageScorer, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Weighted twin of each row minus that of ``p`` (the stage's residual layout).
 
     Only twins integrated alike difference to the effect alone, and a batch runs at the
@@ -145,15 +145,21 @@ def _stage_signals(scorer: StageScorer, p: np.ndarray, rows: np.ndarray) -> np.n
     return np.concatenate(blocks, axis=1)
 
 
-def _refit_basis(scorer: StageScorer, p: np.ndarray) -> np.ndarray:
-    """Orthonormal basis of what the stage's free parameters can change near ``p``
-    (the data rows of their Jacobian): the linearised refit."""
+def refit_jacobian(scorer: StageScorer, p: np.ndarray) -> np.ndarray:
+    """The data rows of the Jacobian of the stage's free parameters (``scorer.stage_free``,
+    in that order) at ``p``: what a refit can change near ``p``."""
     if not scorer.stage_free:
         return np.zeros((sum(scorer.problem([], p).block_sizes()), 0))
     prob = scorer.problem(scorer.stage_free, p)
-    jac = prob.jacobian(prob.u_of(p))[: -len(scorer.stage_free)]  # the prior's rows last
+    return prob.jacobian(prob.u_of(p))[: -len(scorer.stage_free)]  # the prior's rows last
+
+
+def column_basis(jac: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the columns of ``jac`` (the linearised refit)."""
+    if jac.shape[1] == 0:
+        return jac
     u, s, _ = np.linalg.svd(jac, full_matrices=False)
-    return u[:, s > 1e-9 * s[0]]
+    return u[:, s > 1e-9 * s[0]] if s.size and s[0] > 0 else u[:, :0]
 
 
 def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSpec],
@@ -174,7 +180,7 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
     cost = float(scorer.costs(p[None]).sum())
     n_eff = scorer.residual_n_eff(p)
     points = [p] + ([scorer.reset_start(p)] if scorer.reset else [])
-    bases = [_refit_basis(scorer, q) for q in points]
+    bases = [column_basis(refit_jacobian(scorer, q)) for q in points]
     out = []
     for spec in specs:
         res = Resolution(spec.key, spec.effect, spec.component, stage,
@@ -193,7 +199,7 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
             for i, (_, values) in enumerate(sizes):
                 for n, v in values.items():
                     rows[i, model.param_index[n]] = v
-            for i, di in enumerate(_stage_signals(scorer, q, rows)):
+            for i, di in enumerate(effect_signals(scorer, q, rows)):
                 if np.all(np.isfinite(di)):
                     left = di - basis @ (basis.T @ di)
                     energy[i] = np.fmax(energy[i], 0.5 * float(left @ left))

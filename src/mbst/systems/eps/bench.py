@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
+import yaml
 
 from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
@@ -113,6 +114,8 @@ class PlannedTest:
     vehicle_speed_kph: float | None = None
     assist_mode: str | None = None
     sample_rate_hz: float | None = None
+    # a sensor of this test other than the bench's (channel -> noise rms, absolute)
+    noise_rms: dict[str, float] | None = None
 
 
 def demo_plan() -> list[PlannedTest]:
@@ -135,6 +138,38 @@ def demo_plan() -> list[PlannedTest]:
         PlannedTest("s3_ramp", "tires_on_ground", ramp(120, 40)),
         PlannedTest("s3_sine_0p5hz_ctrl", "tires_on_ground", sine(110, 0.5, 3), role="control"),
     ]
+
+
+def plan_from_campaign(path: str | Path) -> list[PlannedTest]:
+    """The tests of a ``campaign.yaml`` (a planned one: no data needed) as a bench plan.
+
+    ``mbst plan --resolve`` writes the campaign with its next tests appended; the bench
+    runs it with the campaign's seed and repeats the logged tests (same order, same noise).
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "campaign.yaml"
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read the campaign ({exc})") from None
+    tests = doc.get("tests") if isinstance(doc, dict) else None
+    if not tests:
+        raise ValueError(f"{path}: no 'tests:' list")
+    out = []
+    for i, t in enumerate(tests):
+        missing = [k for k in ("id", "scenario", "input") if k not in (t or {})]
+        if missing:
+            raise ValueError(f"{path}: test {i + 1} ({(t or {}).get('id', '?')}) has no "
+                             f"{', '.join(missing)}")
+        out.append(PlannedTest(str(t["id"]), str(t["scenario"]), dict(t["input"]),
+                               role=str(t.get("role", "identification")),
+                               motor=str(t.get("motor", "passive")),
+                               vehicle_speed_kph=t.get("vehicle_speed_kph"),
+                               assist_mode=t.get("assist_mode"),
+                               noise_rms={str(k): float(v) for k, v in
+                                          (t.get("sensor_noise_rms") or {}).items()} or None))
+    return out
 
 
 def compact_plan() -> list[PlannedTest]:
@@ -412,7 +447,8 @@ def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
             if ch == "motor_current_a" and pt.motor != "assist":
                 continue  # engine off: the current channel is flat, nothing is logged
             clean = ang if ch == "steering_angle_rad" else sim[ch]
-            cols[ch] = measure(clean, t, NOISE_RMS[ch] * recipe.noise_scale, rng,
+            sigma = (pt.noise_rms or {}).get(ch, NOISE_RMS[ch]) * recipe.noise_scale
+            cols[ch] = measure(clean, t, sigma, rng,
                                recipe.realism.sensor(ch), campaign_time_s)
         tests.append((spec, pd.DataFrame(cols)))
         campaign_time_s += float(t[-1] - t[0]) + SETUP_TIME_S

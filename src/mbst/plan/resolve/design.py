@@ -1,0 +1,192 @@
+"""Model discrimination: the next tests that let discovery decide its open questions.
+
+For a question (an effect at a size, against the model discovery left) the
+two competing models are the model with and without the effect. Their
+expected separation on a set of tests is what discovery's structure test
+would see (Box–Hill / T-optimal design, linearised as in the resolution step,
+``discovery/rounds/resolution.py``): the part ``E`` of the effect's signal
+(twin with the effect minus twin without, in the cost's weights) that a refit
+of the stage's free parameters cannot take over, against the stage's cost
+``C``. The predicted share ``E / (C + E)`` and ``ΔAIC = n_eff · ln(C / (C + E))
++ 2k`` are judged by discovery's own margins.
+
+Every test (logged or predicted, ``candidates.py``) is reduced once to its
+blocks — its cost, its residual, the Jacobian of the stage's free
+parameters and the signal of each question — so any set of tests is scored
+by stacking blocks: the refit is joint over the set, as in discovery.
+
+The selection is greedy on test time: each step adds the candidate that
+brings the open questions furthest towards their margins per second of test,
+until every question clears them with a safety factor or the budget is spent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mbst.discovery.acceptance import aic_drop_needed
+from mbst.discovery.rounds.resolution import column_basis, effect_signals, refit_jacobian
+from mbst.discovery.structure import StageScorer, aic_delta, effective_samples
+from mbst.identify.fitting import PreparedTest
+from mbst.plan.resolve.questions import Question
+
+# the prediction is linear and erred either way near the margins (resolution.py): design
+# until each question clears both margins by this factor
+SAFETY = 1.5
+# the same test repeated at most this often (each repeat: new noise, the same signal)
+MAX_REPEATS = 3
+
+
+@dataclass
+class TestBlocks:
+    """One test reduced to what scoring any set of tests needs."""
+
+    id: str
+    stage: str
+    duration_s: float
+    cost: float  # 0.5 Σ r² of the model as it stands, in the cost's weights
+    residuals: list[np.ndarray]  # unweighted residual blocks (effective samples)
+    jacobians: list[dict[str, np.ndarray]]  # per linearisation point: name -> column
+    signals: list[np.ndarray]  # per point: (questions of the stage, rows)
+
+
+@dataclass
+class Margins:
+    """Discovery's acceptance margins, as the resolution step judges them."""
+
+    min_gain: float
+    min_aic_drop: float | None
+    candidates: int  # catalogue size (the significance margin's multiple comparisons)
+
+    def drop(self, q: Question) -> float:
+        return aic_drop_needed(len(q.spec.free), self.candidates, self.min_aic_drop)
+
+    def progress(self, q: Question, share: float, aic: float) -> float:
+        """How far a prediction is towards both margins × SAFETY (1: clears both)."""
+        return float(np.clip(min(share / (SAFETY * self.min_gain),
+                                 -aic / (SAFETY * self.drop(q))), 0.0, 1.0))
+
+    def clears(self, q: Question, share: float, aic: float) -> bool:
+        return share >= self.min_gain and aic <= -self.drop(q)
+
+
+@dataclass
+class Context:
+    """What every test of one stage is reduced with."""
+
+    p: np.ndarray
+    scales: dict[str, float]
+    free: dict[str, list[str]]
+    reset: dict[str, float]
+    decimate: int
+    questions: list[Question]
+    margins: Margins
+    blocks: dict[str, TestBlocks] = field(default_factory=dict)
+
+    def stage_questions(self, stage: str) -> list[Question]:
+        return [q for q in self.questions if q.stage == stage]
+
+
+def test_blocks(ctx: Context, pt: PreparedTest, stage: str, duration_s: float) -> TestBlocks:
+    """Reduce one test (its stage's scorer on it alone: same free set, same weights)."""
+    scorer = StageScorer([pt], stage, ctx.p, ctx.scales, decimate=ctx.decimate,
+                         free=ctx.free.get(stage), reset=ctx.reset)
+    model = scorer.model
+    costs, res = scorer.cost_and_residuals(ctx.p)
+    points = [ctx.p] + ([scorer.reset_start(ctx.p)] if scorer.reset else [])
+    jacs, sigs = [], []
+    qs = ctx.stage_questions(stage)
+    for q in points:
+        jac = refit_jacobian(scorer, q)
+        jacs.append({n: jac[:, i] for i, n in enumerate(scorer.stage_free)})
+        rows = np.repeat(q[None], len(qs), axis=0)
+        for i, question in enumerate(qs):
+            for n, v in question.values.items():
+                rows[i, model.param_index[n]] = v
+        sigs.append(effect_signals(scorer, q, rows) if qs else np.zeros((0, jac.shape[0])))
+    return TestBlocks(pt.id, stage, duration_s, float(costs[0]), res, jacs, sigs)
+
+
+def score(ctx: Context, stage: str, blocks: list[TestBlocks]) -> list[tuple[float, float]]:
+    """Predicted (share, ΔAIC) of each question of ``stage`` on this set of tests."""
+    qs = ctx.stage_questions(stage)
+    cost = sum(b.cost for b in blocks)
+    n_eff = effective_samples([r for b in blocks for r in b.residuals])
+    names = sorted({n for b in blocks for jac in b.jacobians for n in jac})
+    energy = np.full(len(qs), np.nan)
+    for k in range(len(blocks[0].jacobians)):
+        jac = np.vstack([np.column_stack([b.jacobians[k].get(n, np.zeros(len(b.signals[k].T)))
+                                          for n in names]) if names else
+                         np.zeros((b.signals[k].shape[1], 0)) for b in blocks])
+        sig = np.hstack([b.signals[k] for b in blocks])
+        basis = column_basis(jac)
+        left = sig - (sig @ basis) @ basis.T
+        e = 0.5 * np.einsum("ij,ij->i", left, left)
+        energy = np.fmax(energy, np.where(np.isfinite(e), e, np.nan))
+    out = []
+    for q, e in zip(qs, energy, strict=True):
+        e = 0.0 if np.isnan(e) else float(e)
+        share = e / (cost + e) if cost + e > 0 else 0.0
+        out.append((share, aic_delta(cost, cost + e, n_eff, len(q.spec.free))))
+    return out
+
+
+@dataclass
+class Step:
+    """One greedy step: the test added and every question's prediction after it."""
+
+    test: str
+    duration_s: float
+    progress: float  # summed progress towards the margins this test brought
+    scores: dict[str, tuple[float, float]]
+
+
+def _all_scores(ctx: Context, chosen: dict[str, list[str]]) -> dict[str, tuple[float, float]]:
+    out = {}
+    for stage, ids in chosen.items():
+        for q, s in zip(ctx.stage_questions(stage), score(ctx, stage, [ctx.blocks[i] for i in ids]),
+                        strict=True):
+            out[q.key] = s
+    return out
+
+
+def _total_progress(ctx: Context, scores: dict[str, tuple[float, float]]) -> float:
+    return sum(ctx.margins.progress(q, *scores[q.key]) for q in ctx.questions)
+
+
+def greedy(ctx: Context, logged: dict[str, list[str]], candidates: list[str],
+           budget_s: float) -> tuple[list[Step], dict[str, tuple[float, float]]]:
+    """Add candidates (ids in ``ctx.blocks``) while they help and the budget lasts.
+
+    ``logged``: the campaign's own test ids per stage. A candidate may be added up to
+    ``MAX_REPEATS`` times (a repeat adds evidence, not share). Returns the steps and the
+    predictions on the campaign alone.
+    """
+    chosen = {st: list(ids) for st, ids in logged.items()}
+    before = _all_scores(ctx, chosen)
+    current, spent, steps = dict(before), 0.0, []
+    uses = dict.fromkeys(candidates, 0)
+    while _total_progress(ctx, current) < len(ctx.questions) - 1e-9:
+        best = None
+        for cid in candidates:
+            b = ctx.blocks[cid]
+            if (uses[cid] >= MAX_REPEATS or spent + b.duration_s > budget_s
+                    or not ctx.stage_questions(b.stage)):
+                continue
+            scores = {**current,
+                      **_all_scores(ctx, {b.stage: chosen.get(b.stage, []) + [cid]})}
+            gain = _total_progress(ctx, scores) - _total_progress(ctx, current)
+            if gain > 1e-6 and (best is None or gain / b.duration_s > best[0]):
+                best = (gain / b.duration_s, cid, gain, scores)
+        if best is None:
+            break
+        _, cid, gain, scores = best
+        b = ctx.blocks[cid]
+        chosen[b.stage] = chosen.get(b.stage, []) + [cid]
+        uses[cid] += 1
+        spent += b.duration_s
+        current = scores
+        steps.append(Step(cid, b.duration_s, gain, dict(scores)))
+    return steps, before

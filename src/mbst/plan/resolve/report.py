@@ -1,0 +1,201 @@
+"""What ``mbst plan --resolve`` writes: the campaign with its next tests, the design, the page."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+import yaml
+
+from mbst.identify.fitting import simulate_twin
+from mbst.io.outputs import atomic_text, write_json, write_markdown
+from mbst.plan.resolve.design import SAFETY, score
+from mbst.plan.resolve.run import ResolveResult
+
+
+def campaign_template(res: ResolveResult) -> dict:
+    """The campaign's own ``campaign.yaml`` with the added tests after its own (no data yet).
+
+    Its tests keep their order, so a bench run of the template (``mbst bench
+    --tests-from``) with the campaign's seed repeats them and appends the new ones.
+    """
+    doc = yaml.safe_load((res.campaign.path / "campaign.yaml").read_text())
+    doc["tests"] = list(doc.get("tests", []))
+    for tid, c in res.added():
+        entry = {"id": tid, "file": f"tests/{tid}.csv", "scenario": c.scenario,
+                 "input": dict(c.input), "motor": c.motor, "role": "identification"}
+        if c.input_noise_factor != 1.0:
+            # the sensor the design assumed (the bench logs the test with it)
+            entry["sensor_noise_rms"] = {res.input_channel: res.noise[res.input_channel]
+                                         * c.input_noise_factor}
+        doc["tests"].append(entry)
+    doc["planned_by"] = "mbst plan --resolve"
+    return doc
+
+
+def _question_rows(res: ResolveResult) -> list[dict]:
+    rows = []
+    for q in res.questions:
+        b = res.before.get(q.key, (0.0, 0.0))
+        a = res.after.get(q.key, b)
+        rows.append({"effect": q.spec.effect, "component": q.spec.component, "stage": q.stage,
+                     "reason": q.reason, "size": q.headline,
+                     "aic_drop_needed": res.margins.drop(q),
+                     "share_before": b[0], "aic_delta_before": b[1],
+                     "resolved_before": res.margins.clears(q, *b),
+                     "share_after": a[0], "aic_delta_after": a[1],
+                     "resolved_after": res.margins.clears(q, *a),
+                     "discovery_predicted_before": list(q.before) if q.before else None})
+    return rows
+
+
+def candidate_table(res: ResolveResult) -> pd.DataFrame:
+    """Each candidate added alone to the campaign: its predicted (share, ΔAIC) per question."""
+    ctx = res.context
+    rows = []
+    for c in res.candidates:
+        qs = ctx.stage_questions(c.scenario)
+        if not qs:
+            continue
+        logged = [ctx.blocks[i] for i in res.logged.get(c.scenario, [])]
+        for q, (share, aic) in zip(qs, score(ctx, c.scenario, logged + [ctx.blocks[c.id]]),
+                                   strict=True):
+            rows.append({"candidate": c.id, "scenario": c.scenario, "duration_s": c.duration_s,
+                         "input": yaml.safe_dump(c.input, default_flow_style=True).strip(),
+                         "effect": q.spec.effect, "component": q.spec.component,
+                         "predicted_share": share, "predicted_aic_delta": aic})
+    return pd.DataFrame(rows)
+
+
+def resolve_record(res: ResolveResult, discovery: str) -> dict:
+    return {
+        "format": "mbst-resolve/1",
+        "campaign": res.campaign.name,
+        "discovery": discovery,
+        "margins": {"min_relative_gain": res.margins.min_gain, "safety_factor": SAFETY},
+        "budget": {"test_time_s": res.budget_s, "campaign_test_time_s": res.campaign_time_s,
+                   "added_test_time_s": sum(s.duration_s for s in res.steps)},
+        "questions": _question_rows(res),
+        "added_tests": [{"id": tid, "scenario": c.scenario, "input": c.input,
+                         "sensor_change": c.sensor_change,
+                         "duration_s": c.duration_s, "progress": s.progress}
+                        for (tid, c), s in zip(res.added(), res.steps, strict=True)],
+        "wall_s": round(res.wall_s, 2),
+    }
+
+
+def _fmt_size(size: dict) -> str:
+    return ", ".join(f"{k} {v:.4g}" for k, v in size.items())
+
+
+def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) -> str:
+    rec = resolve_record(res, "")
+    lines = [f"# Next tests for '{res.campaign.name}': what discovery could not decide", "",
+             "Each question is one catalogue pair at one size: would discovery name it if the "
+             "rig had it? Predicted share of its stage's cost and ΔAIC against discovery's "
+             f"margins (share ≥ {100 * res.margins.min_gain:.0f} %, ΔAIC below the needed "
+             f"drop); the design aims at {SAFETY}× both. Method: "
+             "`src/mbst/plan/resolve/design.py`.", "",
+             "| pair | size | why asked | share before | ΔAIC before | share after | "
+             "ΔAIC after | ΔAIC needed | decided after |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rec["questions"]:
+        lines.append(f"| {r['effect']} in {r['component']} | {_fmt_size(r['size'])} | "
+                     f"{r['reason']} | {100 * r['share_before']:.1f} % | "
+                     f"{r['aic_delta_before']:.1f} | {100 * r['share_after']:.1f} % | "
+                     f"{r['aic_delta_after']:.1f} | −{r['aic_drop_needed']:.1f} | "
+                     f"{'yes' if r['resolved_after'] else '**no**'} |")
+    b = rec["budget"]
+    lines += ["", f"Tests added: {len(rec['added_tests'])}, {b['added_test_time_s']:.0f} s of "
+              f"test time ({100 * b['added_test_time_s'] / max(b['campaign_test_time_s'], 1e-9):.0f}"
+              f" % of the campaign's {b['campaign_test_time_s']:.0f} s; allowed "
+              f"{b['test_time_s']:.0f} s). They stay on the campaign's cut-outs, sensors and "
+              "amplitude and rate limits; the one sensor change offered is a finer angle encoder "
+              "(`sensor_noise_rms` in the test's entry). `campaign.yaml` is the campaign with "
+              "them appended.", "",
+              "| test | cut-out | input | sensor change | duration |", "|---|---|---|---|---|"]
+    for t in rec["added_tests"]:
+        inp = yaml.safe_dump(t["input"], default_flow_style=True).strip()
+        lines.append(f"| {t['id']} | {t['scenario']} | `{inp}` | {t['sensor_change'] or '—'} "
+                     f"| {t['duration_s']:.1f} s |")
+    undecided = [r for r in rec["questions"] if not r["resolved_after"]]
+    if undecided:
+        lines += ["", "Not decided within the budget and the rig's limits (see `candidates.csv` "
+                  "for what each candidate test alone would give): "
+                  + "; ".join(f"{r['effect']} in {r['component']}" for r in undecided)
+                  + ". A refit of the stage's parameters takes over most of their signal in "
+                  "every candidate: a test outside these cut-outs, faster inputs or another "
+                  "sensor would be needed, or the effect is below what this rig can show."]
+    for f in figures:
+        lines += ["", f"![{f}](figures/{f})"]
+    for f in failures:
+        lines += ["", f"**Failed:** {f}"]
+    return "\n".join(lines) + "\n"
+
+
+def question_figure(res: ResolveResult, path: Path) -> None:
+    """Per question: the predicted response of its best added test without and with the
+    effect, on the channel where they differ most, and their difference against the noise."""
+    added = res.added()
+    qs = [q for q in res.questions if any(c.scenario == q.stage for _, c in added)]
+    fig, axes = plt.subplots(len(qs), 2, figsize=(11, 2.8 * len(qs)), squeeze=False)
+    for ax, q in zip(axes, qs, strict=True):
+        best = None
+        for _, c in added:
+            if c.scenario != q.stage:
+                continue
+            pt = res.predicted[c.id]
+            p_eff = res.context.p.copy()
+            for n, v in q.values.items():
+                p_eff[pt.model.param_index[n]] = v
+            y0, y1 = simulate_twin(pt, res.context.p), simulate_twin(pt, p_eff)
+            for ch in pt.measured:
+                snr = float(np.sqrt(np.mean((y1[ch] - y0[ch]) ** 2))) / max(pt.noise.get(ch, 0), 1e-12)
+                if best is None or snr > best[0]:
+                    best = (snr, c, pt, ch, y0[ch], y1[ch])
+        if best is None:
+            continue
+        snr, c, pt, ch, y0, y1 = best
+        ax[0].plot(pt.time_s, y0, lw=1, label="without")
+        ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=f"with {q.spec.effect}")
+        ax[0].set_title(f"{q.spec.effect} in {q.spec.component}: {c.id}", fontsize=9)
+        ax[0].set_ylabel(ch, fontsize=8)
+        ax[0].legend(fontsize=7)
+        sigma = pt.noise.get(ch, 0.0)
+        ax[1].plot(pt.time_s, y1 - y0, lw=1, color="C3", label="with − without")
+        ax[1].axhspan(-2 * sigma, 2 * sigma, color="0.85", label="±2σ noise (filtered)")
+        ax[1].set_title(f"difference, rms {snr:.1f}× the noise", fontsize=9)
+        ax[1].legend(fontsize=7)
+        for a in ax:
+            a.set_xlabel("time (s)", fontsize=8)
+            a.tick_params(labelsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_resolve(out: Path, res: ResolveResult, discovery: str) -> None:
+    """Everything into ``out`` (a fresh folder); a failing figure is reported, never fatal."""
+    with atomic_text(out / "campaign.yaml") as fh:
+        fh.write("# written by `mbst plan --resolve`: the campaign with the tests that decide\n"
+                 "# what discovery left open appended (no data yet for those).\n")
+        yaml.safe_dump(campaign_template(res), fh, sort_keys=False, default_flow_style=None,
+                       width=100)
+    with atomic_text(out / "candidates.csv", newline="") as fh:
+        candidate_table(res).to_csv(fh, index=False, float_format="%.6g")
+    figures, failures = [], []
+    if res.steps:
+        try:
+            question_figure(res, out / "figures" / "predicted_responses.png")
+            figures.append("predicted_responses.png")
+        except Exception as exc:  # a figure never loses the design
+            failures.append(f"figure predicted_responses.png: {type(exc).__name__}: {exc}")
+    rec = resolve_record(res, discovery)
+    rec["failures"] = failures
+    write_json(out / "resolve.json", rec)
+    write_markdown(out / "resolve.md", resolve_page(res, figures, failures))

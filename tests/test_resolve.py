@@ -1,0 +1,188 @@
+"""``mbst plan --resolve``: the next tests that let discovery decide what it left open.
+
+The design predicts each candidate test as it would be logged and scores the
+question "would discovery name this effect at this size?" on the campaign plus
+the candidates. The prediction must be faithful to a logged test (its noise
+floor: the angle noise through the torsion bar), must find tests where the
+campaign's own cannot decide, and the loop must close on the bench.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mbst.cli import main
+from mbst.identify.cascade import IdentifySettings, identify
+from mbst.identify.fitting import prepare_test, simulate_twin
+from mbst.io.campaign import read_campaign
+from mbst.plan.resolve import ResolveError, resolve
+from mbst.plan.resolve.candidates import (
+    FINE_INPUT_FACTOR,
+    Candidate,
+    candidate_tests,
+    predicted_test,
+    raw_noise,
+)
+from mbst.plan.resolve.questions import parse_target
+from mbst.systems.eps.bench import (
+    DEFAULT_SENSORS,
+    BenchRecipe,
+    PlannedTest,
+    compact_plan,
+    plan_from_campaign,
+    run_bench,
+)
+from mbst.systems.eps.model import EPS_MODEL
+
+SINE = {"kind": "sine", "amplitude_deg": 1.25, "frequency_hz": 0.5, "cycles": 5}
+TAU = IdentifySettings().tau_s
+
+
+def test_a_target_is_read_and_a_bad_one_refused():
+    spec, values = parse_target("backlash:worm_gear:width_rad=0.005", EPS_MODEL)
+    assert spec.key == "backlash:worm_gear" and values["worm_gear.backlash.width_rad"] == 0.005
+    for bad, says in [("backlash", "EFFECT:COMPONENT"), ("backlash:column", "no pair"),
+                      ("backlash:worm_gear:width=1", "not a parameter"),
+                      ("backlash:worm_gear:width_rad=wide", "not a number")]:
+        with pytest.raises(ResolveError, match=says):
+            parse_target(bad, EPS_MODEL)
+
+
+def test_a_discovery_record_it_cannot_use_is_refused(tmp_path):
+    with pytest.raises(ResolveError, match="no such file"):
+        resolve(tmp_path / "nowhere")
+    (tmp_path / "discovery.json").write_text(json.dumps({"format": "mbst-discovery/2"}))
+    with pytest.raises(ResolveError, match="older mbst"):
+        resolve(tmp_path)
+    assert main(["plan", "--resolve", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_the_bench_runs_a_campaign_template_with_its_sensors(tmp_path):
+    doc = {"tests": [{"id": "a", "scenario": "blocked_column", "input": SINE},
+                     {"id": "b", "scenario": "blocked_column", "input": SINE,
+                      "sensor_noise_rms": {"steering_angle_rad": 1e-5}}]}
+    (tmp_path / "campaign.yaml").write_text(yaml.safe_dump(doc))
+    plan = plan_from_campaign(tmp_path)
+    assert [p.id for p in plan] == ["a", "b"] and plan[1].noise_rms == {"steering_angle_rad": 1e-5}
+    camp = read_campaign(run_bench(tmp_path / "bench", BenchRecipe(effects=[], plan=plan)))
+    noise = [np.std(np.diff(camp.frame(t)["steering_angle_rad"].to_numpy(), 2)) for t in "ab"]
+    assert noise[1] < 0.1 * noise[0]  # the finer sensor is logged finer
+    doc["tests"].append({"id": "c", "input": SINE})
+    (tmp_path / "campaign.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError, match=r"campaign.yaml: test 3 \(c\) has no scenario"):
+        plan_from_campaign(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def stribeck_column(tmp_path_factory):
+    """A compact campaign with a column Stribeck rise, and its base fit."""
+    tmp = tmp_path_factory.mktemp("resolve")
+    recipe = BenchRecipe(effects=["stribeck_friction:steering_column"], seed=1,
+                         plan=compact_plan(), sensors=DEFAULT_SENSORS)
+    camp = read_campaign(run_bench(tmp, recipe))
+    return camp, recipe, identify(camp, IdentifySettings(), controls=False, check_known=False)
+
+
+def test_a_predicted_test_has_the_noise_floor_of_a_logged_one(stribeck_column, tmp_path):
+    """The model is driven by the measured angle: on a blocked column its noise through the
+    torsion bar is a floor six times the torque sensor's. A prediction that drove the rig
+    and the model with one signal saw only the torque noise (0.0098 N·m rms for 0.053)."""
+    camp, recipe, base = stribeck_column
+    p_true = recipe.true_params()
+    ids = [base.prepared[s.id] for s in camp.identification_tests()]
+    cand = Candidate("c", "blocked_column", "passive", SINE, 11.0, ("steering_torque_nm",))
+    noise = raw_noise(camp, ids, "steering_angle_rad")
+    pred = predicted_test(cand, camp.model(), p_true, "steering_angle_rad", noise,
+                          ids[0].dt_s, TAU, np.random.default_rng(0))
+    logged = read_campaign(run_bench(tmp_path, BenchRecipe(
+        effects=["stribeck_friction:steering_column"], seed=1,
+        plan=[PlannedTest("c", "blocked_column", SINE)])))
+    real = prepare_test(logged, logged.test("c"), TAU)
+
+    def floor(pt):
+        r = pt.measured["steering_torque_nm"] - simulate_twin(pt, p_true)["steering_torque_nm"]
+        return float(np.sqrt(np.mean(r**2)))
+
+    assert floor(pred) == pytest.approx(floor(real), rel=0.25)
+    assert floor(real) > 3 * real.noise["steering_torque_nm"]
+
+
+def test_candidates_stay_inside_the_campaigns_limits(stribeck_column):
+    camp, _, base = stribeck_column
+    ids = [base.prepared[s.id] for s in camp.identification_tests()]
+    cands = candidate_tests(ids, {"blocked_column", "free_tie_rods"})
+    for c in cands:
+        own = [pt.spec.input for pt in ids if pt.scenario == c.scenario]
+        assert c.input["amplitude_deg"] <= max(i["amplitude_deg"] for i in own) + 1e-9
+        if c.input["kind"] == "sine":
+            rate = 2 * np.pi * c.input["frequency_hz"] * c.input["amplitude_deg"]
+            assert rate <= max(2 * np.pi * i.get("frequency_hz", 0) * i["amplitude_deg"]
+                               for i in own) * 1.001
+    assert {c.input_noise_factor for c in cands} == {1.0, FINE_INPUT_FACTOR}
+
+
+def _record(camp, base, out: Path) -> Path:
+    """A discovery record as `mbst discover` writes it for this base fit, with column
+    Stribeck marked below resolution (what discovery says of this campaign)."""
+    model = base.model
+    rec = {"format": "mbst-discovery/2", "vector": model.as_dict(base.params),
+           "acceptance": {"min_relative_gain": 0.1, "min_aic_drop": None},
+           "stages": {"campaign_path": str(camp.path), "tau_s": TAU, "decimate": 2,
+                      "stage_free": {st.scenario: list(st.free) for st in base.stages},
+                      "compensating": {}},
+           "resolution": [{"effect": "stribeck_friction", "component": "steering_column",
+                           "stage": "blocked_column", "resolved_from_multiple": None,
+                           "sizes": []}]}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "discovery.json").write_text(json.dumps(rec))
+    return out
+
+
+def test_the_design_finds_tests_that_decide_what_the_campaign_cannot(stribeck_column, tmp_path):
+    camp, _, base = stribeck_column
+    disc = _record(camp, base, tmp_path / "disc")
+    res = resolve(disc, budget_share=0.5)
+    (q,) = res.questions
+    assert not res.margins.clears(q, *res.before[q.key])  # the campaign alone cannot
+    assert res.margins.clears(q, *res.after[q.key])
+    added = res.added()
+    assert added and all(c.scenario == "blocked_column" for _, c in added)
+    assert sum(c.duration_s for _, c in added) <= res.budget_s
+    # the campaign's own sensors cannot: the angle noise is the floor
+    assert any(c.input_noise_factor < 1 for _, c in added)
+    out = tmp_path / "resolve"
+    assert main(["plan", "--resolve", str(disc), "--out", str(out), "--quiet"]) == 0
+    doc = yaml.safe_load((out / "campaign.yaml").read_text())
+    own = [t["id"] for t in yaml.safe_load((camp.path / "campaign.yaml").read_text())["tests"]]
+    assert [t["id"] for t in doc["tests"]][: len(own)] == own
+    assert len(doc["tests"]) == len(own) + len(added)
+    rec = json.loads((out / "resolve.json").read_text())
+    assert rec["questions"][0]["resolved_after"] and not rec["failures"]
+    assert (out / "figures" / "predicted_responses.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow  # ~5 min: two discoveries
+def test_the_loop_closes_on_the_bench(tmp_path):
+    """Base plan → discovery cannot name a column Stribeck rise → plan --resolve → the
+    added tests on the same rig → discovery on the union names it."""
+    bench = ["--plan", "compact", "--seed", "1", "--effect",
+             "stribeck_friction:steering_column", "--quiet"]
+    assert main(["bench", "--out", str(tmp_path / "a"), *bench]) == 0
+    assert main(["discover", str(tmp_path / "a" / "campaign"), "--out",
+                 str(tmp_path / "a" / "disc"), "--quiet"]) == 0
+    before = json.loads((tmp_path / "a" / "disc" / "discovery.json").read_text())
+    assert not any(f["effect"] == "stribeck_friction" for f in before["findings"])
+    assert main(["plan", "--resolve", str(tmp_path / "a" / "disc"), "--out",
+                 str(tmp_path / "r"), "--quiet"]) == 0
+    assert main(["bench", "--out", str(tmp_path / "b"), *bench,
+                 "--tests-from", str(tmp_path / "r" / "campaign.yaml")]) == 0
+    assert main(["discover", str(tmp_path / "b" / "campaign"), "--out",
+                 str(tmp_path / "b" / "disc"), "--quiet"]) == 0
+    after = json.loads((tmp_path / "b" / "disc" / "discovery.json").read_text())
+    first = after["findings"][0]
+    assert (first["effect"], first["component"]) == ("stribeck_friction", "steering_column")
