@@ -15,7 +15,7 @@ import yaml
 from mbst.identify.fitting import simulate_twin
 from mbst.io.outputs import atomic_text, write_json, write_markdown
 from mbst.plan.resolve.design import SAFETY, score
-from mbst.plan.resolve.run import ResolveResult
+from mbst.plan.resolve.run import NEEDED_UP_TO, ResolveResult
 
 
 def campaign_template(res: ResolveResult) -> dict:
@@ -50,6 +50,7 @@ def _question_rows(res: ResolveResult) -> list[dict]:
                      "resolved_before": res.margins.clears(q, *b),
                      "share_after": a[0], "aic_delta_after": a[1],
                      "resolved_after": res.margins.clears(q, *a),
+                     "test_time_needed_s": res.needed.get(q.key),
                      "discovery_predicted_before": list(q.before) if q.before else None})
     return rows
 
@@ -124,12 +125,18 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
                      f"| {t['duration_s']:.1f} s |")
     undecided = [r for r in rec["questions"] if not r["resolved_after"]]
     if undecided:
-        lines += ["", "Not decided within the budget and the rig's limits (see `candidates.csv` "
-                  "for what each candidate test alone would give): "
-                  + "; ".join(f"{r['effect']} in {r['component']}" for r in undecided)
-                  + ". A refit of the stage's parameters takes over most of their signal in "
-                  "every candidate: a test outside these cut-outs, faster inputs or another "
-                  "sensor would be needed, or the effect is below what this rig can show."]
+        lines += ["", "Not decided within the budget (`candidates.csv`: what each candidate "
+                  "test alone would give):", ""]
+        for r in undecided:
+            t = r["test_time_needed_s"]
+            lines.append(f"- {r['effect']} in {r['component']}: " + (
+                f"decided after {t:.0f} s of added tests (the same greedy choice, "
+                "past the budget)" if t is not None else
+                f"not within {NEEDED_UP_TO:g}× the campaign's test time: a refit of the "
+                "stage's parameters takes over most of its signal in every candidate, so a "
+                "cut-out, an input beyond the campaign's rate or amplitude, or a sensor this "
+                "step does not offer would be needed — or the effect is below what this rig "
+                "can show"))
     for f in figures:
         lines += ["", f"![{f}](figures/{f})"]
     for f in failures:

@@ -18,11 +18,14 @@ from mbst.plan.resolve.candidates import (
     predicted_test,
     raw_noise,
 )
-from mbst.plan.resolve.design import Context, Margins, Step, greedy, test_blocks
+from mbst.plan.resolve.design import Context, Margins, Step, greedy, test_blocks, time_needed
 from mbst.plan.resolve.questions import Question, ResolveError, open_questions
 from mbst.systems.eps.channels import SYSTEM_NAME
 
 DISCOVERY_FORMAT = "mbst-discovery/2"
+# beyond the budget, the design goes on up to this multiple of the campaign's test time to
+# say how much test time an undecided question would need
+NEEDED_UP_TO = 2.0
 
 
 @dataclass
@@ -43,6 +46,8 @@ class ResolveResult:
     input_channel: str = ""
     noise: dict[str, float] = field(default_factory=dict)  # raw noise rms per channel
     logged: dict[str, list[str]] = field(default_factory=dict)  # stage -> the campaign's tests
+    # per question: the test time after which it clears (None: not within NEEDED_UP_TO)
+    needed: dict[str, float | None] = field(default_factory=dict)
     wall_s: float = 0.0
 
     @property
@@ -59,6 +64,13 @@ class ResolveResult:
             out.append((f"resolve_{s.test}{suffix}", by_id[s.test]))
         return out
 
+    def _needed_text(self, q: Question) -> str:
+        if self.margins.clears(q, *self.after.get(q.key, (0.0, 0.0))):
+            return ""
+        t = self.needed.get(q.key)
+        return (f" (would need {t:.0f} s of tests)" if t is not None else
+                f" (not within {NEEDED_UP_TO:g}× the campaign's test time)")
+
     def summary(self) -> str:
         lines = [f"resolve '{self.campaign.name}' in {self.wall_s:.1f} s: "
                  f"{len(self.questions)} open question(s), {len(self.steps)} test(s) added "
@@ -68,7 +80,8 @@ class ResolveResult:
             b, a = self.before.get(q.key, (0.0, 0.0)), self.after.get(q.key, (0.0, 0.0))
             lines.append(f"  {q.label():<60} share {100 * b[0]:5.1f} % -> {100 * a[0]:5.1f} %, "
                          f"ΔAIC {b[1]:8.1f} -> {a[1]:8.1f}: "
-                         + ("resolved" if self.margins.clears(q, *a) else "NOT resolved"))
+                         + ("resolved" if self.margins.clears(q, *a) else "NOT resolved")
+                         + self._needed_text(q))
         for tid, c in self.added():
             change = f" with {c.sensor_change}" if c.sensor_change else ""
             lines.append(f"  + {tid}: {c.scenario}, {json.dumps(c.input)}{change} "
@@ -142,7 +155,13 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
         ctx.blocks[c.id] = test_blocks(ctx, pt, c.scenario, c.duration_s)
     campaign_time = sum(float(pt.time_s[-1] - pt.time_s[0]) for pt in ids)
     budget = budget_share * campaign_time
-    steps, before = greedy(ctx, logged, [c.id for c in cands], budget)
+    # first how much test time each question needs; then the budget goes to the questions
+    # it can decide (test time spent on one it cannot decide is wasted rig time)
+    longer, _ = greedy(ctx, logged, [c.id for c in cands], NEEDED_UP_TO * campaign_time)
+    needed = time_needed(ctx, longer)
+    focus = {k for k, t in needed.items() if t is not None and t <= budget}
+    steps, before = greedy(ctx, logged, [c.id for c in cands], budget, focus)
     return ResolveResult(campaign, record, questions, cands, steps, before, margins, budget,
                          campaign_time, predicted=predicted, context=ctx, input_channel=channel,
-                         noise=noise, logged=logged, wall_s=time.perf_counter() - t0)
+                         noise=noise, logged=logged, needed=needed,
+                         wall_s=time.perf_counter() - t0)
