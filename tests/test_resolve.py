@@ -19,6 +19,7 @@ import yaml
 from mbst.cli import main
 from mbst.identify.cascade import IdentifySettings, identify
 from mbst.identify.fitting import prepare_test, simulate_twin
+from mbst.identify.replicate import raw_noise
 from mbst.io.campaign import read_campaign
 from mbst.plan.resolve import ResolveError, resolve
 from mbst.plan.resolve.candidates import (
@@ -26,7 +27,6 @@ from mbst.plan.resolve.candidates import (
     Candidate,
     candidate_tests,
     predicted_test,
-    raw_noise,
 )
 from mbst.plan.resolve.questions import parse_target
 from mbst.systems.eps.bench import (
@@ -96,7 +96,7 @@ def test_a_predicted_test_has_the_noise_floor_of_a_logged_one(stribeck_column, t
     p_true = recipe.true_params()
     ids = [base.prepared[s.id] for s in camp.identification_tests()]
     cand = Candidate("c", "blocked_column", "passive", SINE, 11.0, ("steering_torque_nm",))
-    noise = raw_noise(camp, ids, "steering_angle_rad")
+    noise = raw_noise({pt.id: camp.frame(pt.id) for pt in ids}, ids, "steering_angle_rad")
     pred = predicted_test(cand, camp.model(), p_true, "steering_angle_rad", noise,
                           ids[0].dt_s, TAU, np.random.default_rng(0))
     logged = read_campaign(run_bench(tmp_path, BenchRecipe(

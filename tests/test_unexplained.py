@@ -207,3 +207,39 @@ def test_a_catalogue_name_that_an_outside_signature_rivals_is_put_in_doubt():
     alone = finding(0.2)
     judge_catalogue_names([alone], state(clean))
     assert alone.confirmation == "confirmed" and alone.confidence == 0.9
+
+
+def test_the_input_noise_floor_is_what_the_true_model_leaves(tmp_path):
+    """The model is driven by the measured steering angle, the rig by the true one: that
+    noise through the model is part of every residual. On a campaign that logs the motor
+    angle it is 2–5× (at least 1.5×) the motor angle sensor's own noise (× the worm-gear ratio), and a
+    ripple of 1.1× the sensor noise was taken for structure (confidence 0.95)."""
+    from mbst.identify.fitting import input_noise_floors, prepare_test, simulate_twin
+    from mbst.io.campaign import read_campaign
+    from mbst.systems.eps.bench import DEFAULT_SENSORS, BenchRecipe, compact_plan, run_bench
+
+    recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan()[2:4],
+                         sensors=(*DEFAULT_SENSORS, "motor_angle_rad"))
+    camp = read_campaign(run_bench(tmp_path, recipe))
+    p = recipe.true_params()
+    tests = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()]
+    input_noise_floors({t.id: camp.frame(t.id) for t in tests}, tests, p, "steering_angle_rad")
+    for pt in tests:
+        ch = "motor_angle_rad"
+        left = float(np.std(pt.measured[ch] - simulate_twin(pt, p)[ch]))
+        assert pt.input_floor[ch] > 1.5 * pt.noise[ch]
+        assert pt.floor(ch) == pytest.approx(left, rel=0.35)
+
+
+@pytest.mark.slow  # ~3 min
+def test_a_clean_campaign_that_logs_the_motor_angle_gives_no_finding(tmp_path_factory):
+    from mbst.discovery.pipeline import DiscoverSettings, discover
+    from mbst.io.campaign import read_campaign
+    from mbst.systems.eps.bench import DEFAULT_SENSORS, BenchRecipe, compact_plan, run_bench
+
+    out = tmp_path_factory.mktemp("clean_motor_angle")
+    camp = read_campaign(run_bench(out, BenchRecipe(
+        effects=[], seed=1, plan=compact_plan(), sensors=(*DEFAULT_SENSORS, "motor_angle_rad"))))
+    result = discover(camp, DiscoverSettings(neural=False, sparse=False))
+    assert not [f for f in result.findings if f.effect == "unexplained"], \
+        [f.evidence for f in result.findings]

@@ -46,6 +46,9 @@ class PreparedTest:
     inputs: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     # white-noise level of each filtered measured channel (sensor noise, not misfit)
     noise: dict[str, float] = field(default_factory=dict, repr=False)
+    # rms of what the input sensor's noise, through the model, leaves on each channel
+    # (``input_noise_floors``; empty until discovery measures it)
+    input_floor: dict[str, float] = field(default_factory=dict, repr=False)
 
     @property
     def angle_in_rad(self) -> np.ndarray:
@@ -59,6 +62,11 @@ class PreparedTest:
     @property
     def id(self) -> str:
         return self.spec.id
+
+    def floor(self, channel: str) -> float:
+        """What the true model would leave on ``channel``: the sensor's own noise with the
+        input's noise through the model (``input_floor``), both as the fit sees them."""
+        return math.hypot(self.noise.get(channel, 0.0), self.input_floor.get(channel, 0.0))
 
     @property
     def scenario(self) -> str:
@@ -102,6 +110,30 @@ def prepare_frame(model: ModelDefinition, df: pd.DataFrame, spec: TestSpec, tau_
             measured[ch] = exponential_filter(raw[ch], dt, tau_s)
             noise[ch] = white_noise_std(raw[ch], dt) * gain
     return PreparedTest(spec, t, signal, rate, measured, dt, tau_s, raw, model, inputs, noise)
+
+
+def input_noise_floors(frames: dict[str, pd.DataFrame], tests: list[PreparedTest],
+                       p: np.ndarray, input_channel: str, seed: int = 0) -> None:
+    """Set each test's ``input_floor``: how far the model's twin moves when its input
+    carries a second draw of the input sensor's noise (at the level measured on it).
+
+    The model is driven by the measured input, smoothed; the rig by the true one. The
+    input's noise through the model is then part of every residual no model removes: on
+    the compact plan, 2× the torque sensor's noise on a blocked column and 2–5× the motor
+    angle sensor's (0.05° of steering angle × the worm-gear ratio), where a phase-free
+    ripple of 1.1× the motor angle's noise was taken for structure.
+    """
+    alts = []
+    rng = np.random.default_rng([seed, 13])
+    for pt in tests:
+        frame = frames[pt.id].copy()
+        raw = frame[input_channel].to_numpy(float)
+        frame[input_channel] = raw + white_noise_std(raw, pt.dt_s) * rng.standard_normal(len(raw))
+        alts.append(prepare_frame(pt.model, frame, pt.spec, pt.tau_s))
+    twins = twins_of_tests(tests + alts, [p[None]] * (2 * len(tests)))
+    for pt, (a,), (b,) in zip(tests, twins[: len(tests)], twins[len(tests):], strict=True):
+        pt.input_floor = {ch: float(np.std(b[ch] - a[ch])) if np.all(np.isfinite(b[ch]))
+                          else 0.0 for ch in pt.measured}
 
 
 def _filtered(pt: PreparedTest, sim: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

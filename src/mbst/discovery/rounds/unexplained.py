@@ -7,7 +7,12 @@ of the model's own signals, drift over the campaign). A channel holds
 *unexplained structure* when a group of that library predicts its residual on
 held-out tests better than any of 19 phase-randomised copies of the residual
 (its own noise colour, no tie to the motion) and the part it predicts is larger
-than the channel's sensor noise. The finding (``effect: "unexplained"``) says
+than the channel's noise floor: its sensor noise with the input sensor's noise
+through the model (``identify.fitting.input_noise_floors``; until 2026-11-25 the
+sensor noise alone, and a clean compact campaign logging the motor angle got an
+unexplained "ripple periodic in pinion angle" at confidence 0.95 from 1.1× the
+motor angle's noise, where the steering angle's noise through the model leaves
+2–5× it). The finding (``effect: "unexplained"``) says
 where (channels), what it is periodic in or correlates with, and its size in
 physical terms; it names no catalogue effect. The fitted signature is the
 "physics + learned" correction the control tests score.
@@ -30,6 +35,7 @@ from mbst.core.model import ModelDefinition
 from mbst.discovery.data import residual_data
 from mbst.discovery.signature import ChannelSignature, describe_channel, feature_names
 from mbst.discovery.state import DiscoveryState, Finding
+from mbst.identify.fitting import input_noise_floors
 
 log = logging.getLogger(__name__)
 
@@ -77,8 +83,22 @@ def campaign_places(state: DiscoveryState) -> dict[str, float]:
 
 
 def _noise_rms(state: DiscoveryState, channel: str) -> float:
-    levels = [pt.noise.get(channel, 0.0) for pt in state.ids if channel in pt.measured]
+    """The channel's floor: its sensor noise with the input's noise through the model."""
+    levels = [pt.floor(channel) for pt in state.ids if channel in pt.measured]
     return float(math.sqrt(np.mean(np.square(levels)))) if levels else 0.0
+
+
+def _measure_floors(state: DiscoveryState) -> None:
+    """The input's noise through the extended model, per test and channel; if that fails,
+    the floor is the sensor noise alone (reported)."""
+    try:
+        input_noise_floors({pt.id: state.campaign.frame(pt.id) for pt in state.ids},
+                           state.ids, state.p, driving_input(state.model),
+                           state.settings.identify.seed)
+    except Exception as exc:  # the floor refines the check; it never sinks the round
+        log.warning("input-noise floor failed: %s: %s", type(exc).__name__, exc)
+        state.failures.append(f"unexplained round (input-noise floor): "
+                              f"{type(exc).__name__}: {exc}")
 
 
 def unexplained_round(state: DiscoveryState) -> None:
@@ -95,6 +115,7 @@ def unexplained_round(state: DiscoveryState) -> None:
 
 def _describe(state: DiscoveryState) -> None:
     """Each channel's signature; one ``unexplained`` finding for the structured ones."""
+    _measure_floors(state)
     tests = [residual_data(pt, state.p) for pt in state.ids]
     state.extended_residuals = tests
     places = campaign_places(state)
@@ -151,7 +172,8 @@ def unexplained_finding(found: list[ChannelSignature], components: set[str]) -> 
             f"catalogue effect explains. Signature: {reading(lead)}; it predicts "
             f"{100 * lead.best.cv_share:.0f} % of the residual on held-out tests against "
             f"{100 * lead.chance_share:.0f} % by chance, "
-            f"{lead.explained_rms / max(lead.noise_rms, 1e-300):.1f}× the sensor noise")
+            f"{lead.explained_rms / max(lead.noise_rms, 1e-300):.1f}× the noise floor (sensor "
+            "noise and the input's noise through the model)")
     return Finding(
         effect="unexplained", component=_place(kind, quantity, components), parameters={},
         confidence=1.0 - lead.p_value, evidence=text, stage=", ".join(lead.best.scenarios),

@@ -24,12 +24,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import pandas as pd
 
-from mbst.core.filtering import filtered_noise_gain, white_noise_std
 from mbst.core.model import ModelDefinition
-from mbst.identify.fitting import PreparedTest, prepare_frame
-from mbst.io.campaign import Campaign, TestSpec
+from mbst.identify.fitting import PreparedTest
+from mbst.identify.replicate import logged_like
+from mbst.io.campaign import TestSpec
 from mbst.systems.eps.bench import input_profile
 
 SINE_HZ = (0.1, 0.25, 0.5, 1.0, 2.0)
@@ -114,28 +113,10 @@ def candidate_tests(tests: list[PreparedTest], scenarios: set[str]) -> list[Cand
     return out
 
 
-def raw_noise(campaign: Campaign, tests: list[PreparedTest], input_channel: str
-              ) -> dict[str, float]:
-    """Each channel's white-noise rms before the filter, the input's too (median over tests).
-
-    The input matters most: the model is driven by the measured angle, and on a blocked
-    column its noise through the torsion bar is the floor (six times the torque sensor's).
-    """
-    per: dict[str, list[float]] = {}
-    for pt in tests:
-        gain = filtered_noise_gain(pt.dt_s, pt.tau_s)
-        for ch, v in pt.noise.items():
-            per.setdefault(ch, []).append(v / gain if gain > 0 else v)
-        raw = campaign.frame(pt.id)[input_channel].to_numpy(float)
-        per.setdefault(input_channel, []).append(white_noise_std(raw, pt.dt_s))
-    return {ch: float(np.median(v)) for ch, v in per.items()}
-
-
 def predicted_test(cand: Candidate, model: ModelDefinition, p: np.ndarray, input_channel: str,
                    noise: dict[str, float], dt_s: float, tau_s: float,
                    rng: np.random.Generator) -> PreparedTest:
-    """The candidate as it would be logged: the rig ``p`` driven by the true input, every
-    channel with its noise — the input channel too, which the model is then driven by.
+    """The candidate as it would be logged (``identify.replicate.logged_like``).
 
     The model sees the angle only through its sensor: on a blocked column the angle
     noise through the torsion bar is a floor several times the torque sensor's own, and
@@ -144,16 +125,5 @@ def predicted_test(cand: Candidate, model: ModelDefinition, p: np.ndarray, input
     t, ang = input_profile(cand.input, 1.0 / dt_s)
     spec = TestSpec(id=cand.id, file=f"tests/{cand.id}.csv", scenario=cand.scenario,
                     input=dict(cand.input), motor=cand.motor, role="identification")
-    frame = pd.DataFrame({"time_s": t, input_channel: ang})
-    for ch in cand.channels:
-        if ch not in frame:
-            frame[ch] = 0.0
-    # the rig: no input noise and no input smoothing (a window of one sample)
-    truth = prepare_frame(model, frame, spec, 0.0, input_window_s=0.0)
-    sim = model.simulate_batch(truth, p[None])[0]
-    sigma_in = noise.get(input_channel, 0.0) * cand.input_noise_factor
-    frame[input_channel] = ang + sigma_in * rng.standard_normal(len(t))
-    for ch in cand.channels:
-        if ch != input_channel:
-            frame[ch] = sim[ch] + noise.get(ch, 0.0) * rng.standard_normal(len(t))
-    return prepare_frame(model, frame, spec, tau_s)
+    noise = {**noise, input_channel: noise.get(input_channel, 0.0) * cand.input_noise_factor}
+    return logged_like(model, spec, t, ang, p, cand.channels, input_channel, noise, tau_s, rng)

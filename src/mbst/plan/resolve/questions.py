@@ -68,13 +68,17 @@ def _headline(spec: EffectSpec, values: dict[str, float]) -> dict[str, float]:
     return {h: float(values[n]) for h, n in spec.headline.items()}
 
 
-def open_questions(record: dict, model: ModelDefinition, targets: list[str]) -> list[Question]:
-    """The pairs discovery marked as not resolved at their realistic size, then ``targets``.
+def open_questions(record: dict, model: ModelDefinition, targets: list[str]
+                   ) -> tuple[list[Question], list[str]]:
+    """The pairs discovery marked as not resolved at their realistic size, then ``targets``;
+    and notes on targets that need no test (discovery named them already).
 
     A pair whose component acts in no tested cut-out (``stage`` None) is no question for
     this step: it needs a cut-out the campaign lacks (``mbst plan`` chooses cut-outs).
     """
     out: list[Question] = []
+    notes: list[str] = []
+    named = {f"{f['effect']}:{f['component']}": f for f in record.get("findings", [])}
     stages: dict[str, str] = {}
     for r in record.get("resolution", []):
         key = f"{r['effect']}:{r['component']}"
@@ -93,10 +97,15 @@ def open_questions(record: dict, model: ModelDefinition, targets: list[str]) -> 
                             if at else None))
     for text in targets:
         spec, values = parse_target(text, model)
+        if spec.key in named:
+            size = ", ".join(f"{k} {v:.4g}" for k, v in named[spec.key]["parameters"].items())
+            notes.append(f"--target {text}: discovery named it already ({size}, confidence "
+                         f"{named[spec.key].get('confidence') or 0:.2f}); no test needed")
+            continue
         if spec.key not in stages:
             raise ResolveError(f"--target '{text}': {spec.key} acts in no cut-out of this "
-                               "campaign (or discovery named it already)")
+                               "campaign")
         out = [q for q in out if q.key != spec.key]
         out.append(Question(spec, stages[spec.key], values, "asked (--target)",
                             _headline(spec, values)))
-    return out
+    return out, notes

@@ -86,6 +86,7 @@ def resolve_record(res: ResolveResult, discovery: str) -> dict:
                          "sensor_change": c.sensor_change,
                          "duration_s": c.duration_s, "progress": s.progress}
                         for (tid, c), s in zip(res.added(), res.steps, strict=True)],
+        "notes": list(res.notes),
         "wall_s": round(res.wall_s, 2),
     }
 
@@ -137,6 +138,11 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
                 "cut-out, an input beyond the campaign's rate or amplitude, or a sensor this "
                 "step does not offer would be needed — or the effect is below what this rig "
                 "can show"))
+    for n in res.notes:
+        lines += ["", f"Note: {n}"]
+    if not res.questions:
+        lines += ["", "Nothing open: discovery resolves every catalogue pair that acts in "
+                  "these cut-outs at its realistic size, and no target was asked."]
     for f in figures:
         lines += ["", f"![{f}](figures/{f})"]
     for f in failures:

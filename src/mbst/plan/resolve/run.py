@@ -11,13 +11,9 @@ import numpy as np
 
 from mbst.core.family import get_system
 from mbst.identify.fitting import PreparedTest, channel_scales, prepare_test
+from mbst.identify.replicate import raw_noise
 from mbst.io.campaign import Campaign, read_campaign
-from mbst.plan.resolve.candidates import (
-    Candidate,
-    candidate_tests,
-    predicted_test,
-    raw_noise,
-)
+from mbst.plan.resolve.candidates import Candidate, candidate_tests, predicted_test
 from mbst.plan.resolve.design import Context, Margins, Step, greedy, test_blocks, time_needed
 from mbst.plan.resolve.questions import Question, ResolveError, open_questions
 from mbst.systems.eps.channels import SYSTEM_NAME
@@ -48,6 +44,7 @@ class ResolveResult:
     logged: dict[str, list[str]] = field(default_factory=dict)  # stage -> the campaign's tests
     # per question: the test time after which it clears (None: not within NEEDED_UP_TO)
     needed: dict[str, float | None] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
 
     @property
@@ -82,6 +79,8 @@ class ResolveResult:
                          f"ΔAIC {b[1]:8.1f} -> {a[1]:8.1f}: "
                          + ("resolved" if self.margins.clears(q, *a) else "NOT resolved")
                          + self._needed_text(q))
+        for n in self.notes:
+            lines.append(f"  note: {n}")
         for tid, c in self.added():
             change = f" with {c.sensor_change}" if c.sensor_change else ""
             lines.append(f"  + {tid}: {c.scenario}, {json.dumps(c.input)}{change} "
@@ -132,7 +131,7 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     ids = [prepare_test(campaign, s, st["tau_s"]) for s in campaign.identification_tests()]
     acc = record["acceptance"]
     margins = Margins(acc["min_relative_gain"], acc["min_aic_drop"], len(model.catalogue))
-    questions = open_questions(record, model, targets or [])
+    questions, notes = open_questions(record, model, targets or [])
     ctx = Context(p, channel_scales(ids), st["stage_free"], st["compensating"], st["decimate"],
                   questions, margins)
     stages = {q.stage for q in questions}
@@ -144,7 +143,7 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
             logged.setdefault(stage, []).append(f"{stage}/{pt.id}")
     cands = candidate_tests(ids, stages)
     channel = get_system(model.name).input_channel
-    noise = raw_noise(campaign, ids, channel)
+    noise = raw_noise({pt.id: campaign.frame(pt.id) for pt in ids}, ids, channel)
     predicted = {}
     for i, c in enumerate(cands):
         if progress:
@@ -163,5 +162,5 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     steps, before = greedy(ctx, logged, [c.id for c in cands], budget, focus)
     return ResolveResult(campaign, record, questions, cands, steps, before, margins, budget,
                          campaign_time, predicted=predicted, context=ctx, input_channel=channel,
-                         noise=noise, logged=logged, needed=needed,
+                         noise=noise, logged=logged, needed=needed, notes=notes,
                          wall_s=time.perf_counter() - t0)
