@@ -186,3 +186,20 @@ def test_the_loop_closes_on_the_bench(tmp_path):
     after = json.loads((tmp_path / "b" / "disc" / "discovery.json").read_text())
     first = after["findings"][0]
     assert (first["effect"], first["component"]) == ("stribeck_friction", "steering_column")
+
+
+def test_another_familys_campaign_gets_a_note_not_a_failure(tmp_path):
+    """A workflow may list every family's campaigns with `resolve: enabled`; the designer
+    knows the EPS rig only and says so instead of stopping the run."""
+    from mbst.systems.prismatic.bench import run_prismatic_bench
+
+    camp = read_campaign(run_prismatic_bench(tmp_path / "axis", seed=1))
+    model = camp.model()
+    rec = {"format": "mbst-discovery/2", "vector": model.as_dict(model.vector_from()),
+           "acceptance": {"min_relative_gain": 0.1, "min_aic_drop": None},
+           "stages": {"campaign_path": str(camp.path)}, "resolution": []}
+    (tmp_path / "discovery.json").write_text(json.dumps(rec))
+    out = tmp_path / "resolve"
+    assert main(["plan", "--resolve", str(tmp_path), "--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "resolve.json").read_text())
+    assert res["added_tests"] == [] and "knows the eps-column-assist rig" in res["notes"][0]

@@ -138,6 +138,11 @@ def test_the_unexplained_round_is_silent_on_a_clean_rig(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "below the noise floor since the floor counts the input sensor's noise through the "
+    "model (2026-11-25): the drift group explains 0.0197 N·m of the torque residual "
+    "(22.9 % held out vs 14.1 % chance), the floor is 0.0256 N·m (the sensor's own 0.009); "
+    "discovery names nothing with confidence ≥ 0.5 (rack position-dependent friction 0.16)"))
 def test_friction_that_drifts_over_the_campaign_is_described_not_named(tmp_path_factory):
     from mbst.systems.eps.bench import compact_plan
 

@@ -111,11 +111,7 @@ def _campaign(record: dict, path: Path, campaign_dir: str | Path | None) -> Camp
     where = Path(campaign_dir) if campaign_dir else Path(record["stages"]["campaign_path"])
     if not where.is_absolute() and campaign_dir is None and not where.exists():
         where = path.parent / where
-    campaign = read_campaign(where)
-    if campaign.system != SYSTEM_NAME:
-        raise ResolveError(f"{where}: system '{campaign.system}'; the test designer knows the "
-                           f"{SYSTEM_NAME} rig's cut-outs and inputs only")
-    return campaign
+    return read_campaign(where)
 
 
 def resolve(discovery: str | Path, targets: list[str] | None = None,
@@ -126,11 +122,17 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     record, path = read_discovery(discovery)
     campaign = _campaign(record, path, campaign_dir)
     model = campaign.model()
+    acc = record["acceptance"]
+    margins = Margins(acc["min_relative_gain"], acc["min_aic_drop"], len(model.catalogue))
+    if campaign.system != SYSTEM_NAME:
+        # a workflow may list every family's campaigns: say so, do not stop the run
+        note = (f"system '{campaign.system}': the test designer knows the {SYSTEM_NAME} "
+                "rig's cut-outs, inputs and sensors only; no test designed")
+        return ResolveResult(campaign, record, [], [], [], {}, margins, 0.0, 0.0,
+                             notes=[note], wall_s=time.perf_counter() - t0)
     st = record["stages"]
     p = model.vector_from({k: v for k, v in record["vector"].items() if k in model.param_index})
     ids = [prepare_test(campaign, s, st["tau_s"]) for s in campaign.identification_tests()]
-    acc = record["acceptance"]
-    margins = Margins(acc["min_relative_gain"], acc["min_aic_drop"], len(model.catalogue))
     questions, notes = open_questions(record, model, targets or [])
     ctx = Context(p, channel_scales(ids), st["stage_free"], st["compensating"], st["decimate"],
                   questions, margins)
