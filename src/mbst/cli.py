@@ -28,8 +28,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 # mbst bench's realism flags → BenchRealism fields
 _REALISM_FLAGS = ("draw_rig", "known_error", "known_sigma", "draw_sizes", "noise_ar1",
-                  "quantise", "torque_lag_s", "offset_drift", "friction_drift", "cogging_nm", "rack_ratio_variation",
-                  "oversample", "smoothing", "plan_jitter")
+                  "quantise", "torque_lag_s", "offset_drift", "friction_drift", "cogging_nm",
+                  "rack_ratio_variation", "oversample", "smoothing", "plan_jitter")
 
 
 def _bench_realism(args: argparse.Namespace):

@@ -219,9 +219,9 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
                              if settings.neural else None),
         resolution=state.resolution, failures=failures, signatures=state.signatures,
         places=places, extended_residuals=state.extended_residuals,
-        stages={"campaign_path": str(Path(state.campaign.path).resolve()), "stage_free": state.cascade_free,
-                "compensating": state.compensating(), "tau_s": settings.identify.tau_s,
-                "decimate": settings.identify.decimate},
+        stages={"campaign_path": str(Path(state.campaign.path).resolve()),
+                "stage_free": state.cascade_free, "compensating": state.compensating(),
+                "tau_s": settings.identify.tau_s, "decimate": settings.identify.decimate},
     )
 
 

@@ -162,6 +162,13 @@ def column_basis(jac: np.ndarray) -> np.ndarray:
     return u[:, s > 1e-9 * s[0]] if s.size and s[0] > 0 else u[:, :0]
 
 
+def predicted_score(cost: float, energy: float, n_eff: float, k: int) -> tuple[float, float]:
+    """The share of the stage's cost an effect with unabsorbed energy ``energy`` would
+    remove, and its Akaike difference (module doc, step 3)."""
+    share = energy / (cost + energy) if cost + energy > 0 else 0.0
+    return share, aic_delta(cost, cost + energy, n_eff, k)
+
+
 def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSpec],
                      p: np.ndarray, scales: dict[str, float], free: list[str] | None,
                      decimate: int = 2, reset: dict[str, float] | None = None,
@@ -208,8 +215,7 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
                 continue
             res.sizes.append(SizeScore(
                 m, {h: float(values[n]) for h, n in spec.headline.items()},
-                e / (cost + e) if cost + e > 0 else 0.0,
-                aic_delta(cost, cost + e, n_eff, len(spec.free))))
+                *predicted_score(cost, e, n_eff, len(spec.free))))
         out.append(res)
     return out
 

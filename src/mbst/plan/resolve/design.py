@@ -27,8 +27,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbst.discovery.acceptance import aic_drop_needed
-from mbst.discovery.rounds.resolution import column_basis, effect_signals, refit_jacobian
-from mbst.discovery.structure import StageScorer, aic_delta, effective_samples
+from mbst.discovery.rounds.resolution import (
+    column_basis,
+    effect_signals,
+    predicted_score,
+    refit_jacobian,
+)
+from mbst.discovery.structure import StageScorer, effective_samples
 from mbst.identify.fitting import PreparedTest
 from mbst.plan.resolve.questions import Question
 
@@ -52,6 +57,7 @@ class TestBlocks:
     id: str
     stage: str
     duration_s: float
+    rows: int  # residual rows (samples × channels, decimated)
     cost: float  # 0.5 Σ r² of the model as it stands, in the cost's weights
     residuals: list[np.ndarray]  # unweighted residual blocks (effective samples)
     jacobians: list[dict[str, np.ndarray]]  # per linearisation point: name -> column
@@ -112,7 +118,7 @@ def test_blocks(ctx: Context, pt: PreparedTest, stage: str, duration_s: float) -
             for n, v in question.values.items():
                 rows[i, model.param_index[n]] = v
         sigs.append(effect_signals(scorer, q, rows) if qs else np.zeros((0, jac.shape[0])))
-    return TestBlocks(pt.id, stage, duration_s, float(costs[0]), res, jacs, sigs)
+    return TestBlocks(pt.id, stage, duration_s, len(jac), float(costs[0]), res, jacs, sigs)
 
 
 def score(ctx: Context, stage: str, blocks: list[TestBlocks]) -> list[tuple[float, float]]:
@@ -123,20 +129,17 @@ def score(ctx: Context, stage: str, blocks: list[TestBlocks]) -> list[tuple[floa
     names = sorted({n for b in blocks for jac in b.jacobians for n in jac})
     energy = np.full(len(qs), np.nan)
     for k in range(len(blocks[0].jacobians)):
-        jac = np.vstack([np.column_stack([b.jacobians[k].get(n, np.zeros(len(b.signals[k].T)))
-                                          for n in names]) if names else
-                         np.zeros((b.signals[k].shape[1], 0)) for b in blocks])
+        # the refit is joint over the set: a parameter a test does not see is a zero column
+        jac = np.vstack([np.column_stack([b.jacobians[k].get(n, np.zeros(b.rows))
+                                          for n in names]) if names else np.zeros((b.rows, 0))
+                         for b in blocks])
         sig = np.hstack([b.signals[k] for b in blocks])
         basis = column_basis(jac)
         left = sig - (sig @ basis) @ basis.T
         e = 0.5 * np.einsum("ij,ij->i", left, left)
         energy = np.fmax(energy, np.where(np.isfinite(e), e, np.nan))
-    out = []
-    for q, e in zip(qs, energy, strict=True):
-        e = 0.0 if np.isnan(e) else float(e)
-        share = e / (cost + e) if cost + e > 0 else 0.0
-        out.append((share, aic_delta(cost, cost + e, n_eff, len(q.spec.free))))
-    return out
+    return [predicted_score(cost, 0.0 if np.isnan(e) else float(e), n_eff, len(q.spec.free))
+            for q, e in zip(qs, energy, strict=True)]
 
 
 @dataclass

@@ -167,7 +167,8 @@ def question_figure(res: ResolveResult, path: Path) -> None:
                 p_eff[pt.model.param_index[n]] = v
             y0, y1 = simulate_twin(pt, res.context.p), simulate_twin(pt, p_eff)
             for ch in pt.measured:
-                snr = float(np.sqrt(np.mean((y1[ch] - y0[ch]) ** 2))) / max(pt.noise.get(ch, 0), 1e-12)
+                diff_rms = float(np.sqrt(np.mean((y1[ch] - y0[ch]) ** 2)))
+                snr = diff_rms / max(pt.noise.get(ch, 0.0), 1e-12)
                 if best is None or snr > best[0]:
                     best = (snr, c, pt, ch, y0[ch], y1[ch])
         if best is None:
@@ -180,8 +181,8 @@ def question_figure(res: ResolveResult, path: Path) -> None:
         ax[0].legend(fontsize=7)
         sigma = pt.noise.get(ch, 0.0)
         ax[1].plot(pt.time_s, y1 - y0, lw=1, color="C3", label="with − without")
-        ax[1].axhspan(-2 * sigma, 2 * sigma, color="0.85", label="±2σ noise (filtered)")
-        ax[1].set_title(f"difference, rms {snr:.1f}× the noise", fontsize=9)
+        ax[1].axhspan(-2 * sigma, 2 * sigma, color="0.85", label="±2σ sensor noise (filtered)")
+        ax[1].set_title(f"difference, rms {snr:.1f}× the sensor noise", fontsize=9)
         ax[1].legend(fontsize=7)
         for a in ax:
             a.set_xlabel("time (s)", fontsize=8)
