@@ -188,6 +188,8 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines.append(f"| {t} | {ch} | " + " | ".join(f"{row[m]:.1f}" for m in models) + " |")
     if result.benchmark and "published" in result.benchmark:
         lines += benchmark_table(result.benchmark)
+    elif result.benchmark and "tests" in result.benchmark:
+        lines += windowed_benchmark_lines(result.benchmark)
     lines += failure_lines(result.failures)
     return "\n".join(lines) + "\n"
 
@@ -314,6 +316,55 @@ def benchmark_table(bench: dict) -> list[str]:
                   f"{fmt(base.get(f'{key}_output_error_parameters'))} (base) and "
                   f"{fmt(bench[f'{key}_output_error_parameters'])} (extended)."]
     lines += _hybrid_lines(bench.get("hybrid"))
+    return lines
+
+
+def windowed_benchmark_lines(bench: dict) -> list[str]:
+    """Per control test, our models beside the published one over its scoring window
+    (the friction damper's ``benchmark.json``: ``tests`` → ``window``)."""
+    rows = {tid: r for tid, r in bench["tests"].items() if "window" in r}
+    if not rows:
+        return []
+    names = [n for n in bench.get("mean_window_fit_percent", {}) if n != "base"] + ["base"]
+    published = next(iter(rows.values())).get("published_model", "published")
+    lines = ["", f"## Control tests beside the published model ({published}), its windows",
+             "", "FIT % / RMSE N / NRMSE of the raw force over the samples the makers scored.",
+             "", "| test | samples | " + " | ".join(names) + " |",
+             "|---|---|" + "---|" * len(names)]
+    for tid, r in rows.items():
+        a, b = r["window_samples"]
+        cells = [f"{r['window'][n]['fit_percent']:.1f} / {r['window'][n]['rmse_n']:.0f} / "
+                 f"{r['window'][n]['nrmse']:.3f}" for n in names]
+        lines.append(f"| {tid} | {a}–{b} | " + " | ".join(cells) + " |")
+    means = bench.get("mean_window_fit_percent", {})
+    lines += ["", "Mean FIT: " + ", ".join(f"{n} {means[n]:.1f} %" for n in names if n in means)
+              + "."]
+    hybrid = bench.get("hybrid")
+    if hybrid and "error" in hybrid:
+        lines += ["", f"Physics + neural residual: not computed ({hybrid['error']})."]
+    elif hybrid:
+        lines += ["", f"Physics + neural residual: {hybrid['model']} "
+                  f"({len(hybrid['trained_on'])} tests, {hybrid['train_seconds']:.0f} s; "
+                  f"correction gain {', '.join(f'{g:.2f}' for g in hybrid['correction_gain'].values())})."]
+    return lines + _error_place_lines(rows)
+
+
+def _error_place_lines(rows: dict) -> list[str]:
+    """Where the squared force error lies, by the band's state in the physics replay."""
+    shares = {tid: r["error_by_band_state"] for tid, r in rows.items() if "error_by_band_state" in r}
+    if not shares:
+        return []
+    states = list(next(iter(shares.values()))["samples"])
+    models = [m for m in next(iter(shares.values())) if m != "samples"]
+    lines = ["", "Where the error is left (share of the squared force error, by the band's "
+             "state in the extended model's replay; first column: share of samples):", "",
+             "| test | model | " + " | ".join(s.replace("_", " ") for s in states) + " |",
+             "|---|---|" + "---|" * len(states)]
+    for tid, sh in shares.items():
+        lines.append(f"| {tid} | samples | " + " | ".join(
+            f"{100 * sh['samples'][s]:.0f} %" for s in states) + " |")
+        lines += [f"| | {m} | " + " | ".join(f"{100 * sh[m][s]:.0f} %" for s in states) + " |"
+                  for m in models]
     return lines
 
 

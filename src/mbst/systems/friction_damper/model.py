@@ -81,7 +81,8 @@ CATALOGUE: tuple[EffectSpec, ...] = (
 
 BASE_PARAMS = ("band.stiffness_n_per_m", "band.coulomb_n", "band.viscous_ns_per_m")
 CASCADE = (("imposed_displacement", BASE_PARAMS),)
-INTERNAL = ("velocity_m_per_s", "band_force_n", "band_deflection_m")
+# band_slip_direction: +1/−1 while the band slips forwards/backwards at its level, else 0
+INTERNAL = ("velocity_m_per_s", "band_force_n", "band_deflection_m", "band_slip_direction")
 N_OUT = 1 + len(INTERNAL)
 
 
@@ -145,6 +146,7 @@ def _run(x, v, p, f0, dt, out):
         out[i, 1] = v[i]
         out[i, 2] = f
         out[i, 3] = x[i] - s
+        out[i, 4] = 1.0 if f >= up else (-1.0 if f <= -down else 0.0)
 
 
 @nb.njit(parallel=True, cache=True)
