@@ -169,6 +169,58 @@ def test_the_design_finds_tests_that_decide_what_the_campaign_cannot(stribeck_co
     assert (out / "figures" / "predicted_responses.png").stat().st_size > 10_000
 
 
+def _rival_record(camp, base, p, out: Path, alternatives: list[dict],
+                  joint: list[str] = ()) -> Path:
+    """A record whose extended model ``p`` names column Stribeck, with look-alikes the
+    campaign did not rule out (``alternatives`` as acceptance.ranking_bootstrap writes them)."""
+    path = _record(camp, base, out)
+    rec = json.loads((path / "discovery.json").read_text())
+    rec["vector"] = base.model.as_dict(p)
+    rec["resolution"] = []
+    rec["findings"] = [{"effect": "stribeck_friction", "component": "steering_column",
+                        "stage": "blocked_column", "parameters": {},
+                        "indistinguishable_from": list(joint), "alternatives": alternatives}]
+    rec["rounds"] = [{"round": 1, "accepted": "stribeck_friction:steering_column",
+                      "candidates": [{"key": "asymmetric_friction:steering_column",
+                                      "headline": {"ratio": 1.45}}]}]
+    (path / "discovery.json").write_text(json.dumps(rec))
+    return path
+
+
+def _alt(key: str, share: float = 0.8) -> dict:
+    effect, component = key.split(":")
+    return {"key": key, "effect": effect, "component": component, "winner_better_share": share}
+
+
+def test_a_look_alike_discovery_did_not_rule_out_is_decided_by_a_designed_test(
+        stribeck_column, tmp_path):
+    """Column Stribeck named, a column asymmetry not ruled out: the rival question's two
+    models are the named one and the asymmetry at its refitted size with Stribeck off; the
+    campaign alone does not separate them, the design adds a test that does."""
+    camp, recipe, base = stribeck_column
+    p = recipe.true_params()
+    disc = _rival_record(camp, base, p, tmp_path / "disc",
+                         [_alt("asymmetric_friction:steering_column")])
+    res = resolve(disc, budget_share=1.0)
+    (q,) = res.questions
+    assert q.rival.key == "asymmetric_friction:steering_column"
+    rival, named = q.models(res.context.p, camp.model())
+    idx = camp.model().param_index
+    assert named[idx["steering_column.stribeck_friction.static_to_coulomb_ratio"]] > 1.0
+    assert rival[idx["steering_column.stribeck_friction.static_to_coulomb_ratio"]] == 1.0
+    assert rival[idx["steering_column.asymmetric_friction.ratio"]] == 1.45  # its refit's
+    assert not res.margins.clears(q, *res.before[q.key])
+    assert res.margins.clears(q, *res.after[q.key])
+    assert res.added() and all(c.scenario == "blocked_column" for _, c in res.added())
+    assert "or asymmetric_friction in steering_column" in res.summary()
+
+    # a look-alike named too, or the same effect in a part that moves as one body: no test
+    # decides between them, so no question
+    both = _rival_record(camp, base, p, tmp_path / "both",
+                         [_alt("stribeck_friction:motor")], joint=["motor"])
+    assert resolve(both).questions == []
+
+
 @pytest.mark.slow  # ~5 min: two discoveries
 def test_the_loop_closes_on_the_bench(tmp_path):
     """Base plan → discovery cannot name a column Stribeck rise → plan --resolve → the

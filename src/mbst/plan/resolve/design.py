@@ -15,6 +15,14 @@ blocks — its cost, its residual, the Jacobian of the stage's free
 parameters and the signal of each question — so any set of tests is scored
 by stacking blocks: the refit is joint over the set, as in discovery.
 
+A rival question (a finding and a look-alike discovery did not rule out) is
+scored the same way between its two models: the part of the named model's
+signal that the rival's refit (the stage's parameters and the rival's own)
+cannot take over. Discovery rules a rival out when the finding wins in 95 %
+of block-bootstrap resamples; for a separation ``E`` against noise, the cost
+difference has mean ``E`` and a spread that makes that ``sqrt(LR)/2 ≥ 1.645``
+with ``LR = n_eff · ln((C + E)/C)``: ``LR ≥ 10.8`` (``RIVAL_LR``).
+
 The selection is greedy on test time: each step adds the candidate that
 brings the open questions furthest towards their margins per second of test,
 until every question clears them with a safety factor or the budget is spent.
@@ -25,8 +33,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import norm
 
-from mbst.discovery.acceptance import aic_drop_needed
+from mbst.discovery.acceptance import SEPARATED_SHARE, aic_drop_needed
 from mbst.discovery.rounds.resolution import (
     column_basis,
     effect_signals,
@@ -48,6 +57,9 @@ MAX_REPEATS = 3
 # prediction promised (stribeck column, seed 1: predicted 18.7 % of the stage, named 8.9 %).
 # The budget itself counts test time only.
 TEST_OVERHEAD_S = 10.0
+# the likelihood ratio between two rivals at which the named one wins in SEPARATED_SHARE
+# of resamples (module doc)
+RIVAL_LR = float((2.0 * norm.ppf(SEPARATED_SHARE)) ** 2)
 
 
 @dataclass
@@ -62,6 +74,8 @@ class TestBlocks:
     residuals: list[np.ndarray]  # unweighted residual blocks (effective samples)
     jacobians: list[dict[str, np.ndarray]]  # per linearisation point: name -> column
     signals: list[np.ndarray]  # per point: (questions of the stage, rows)
+    # per point, per rival question: the rival model's refit Jacobian (rows, its columns)
+    rival_jacobians: list[dict[str, np.ndarray]] = field(default_factory=list)
 
 
 @dataclass
@@ -73,15 +87,20 @@ class Margins:
     candidates: int  # catalogue size (the significance margin's multiple comparisons)
 
     def drop(self, q: Question) -> float:
+        if q.rival is not None:
+            return RIVAL_LR
         return aic_drop_needed(len(q.spec.free), self.candidates, self.min_aic_drop)
 
     def progress(self, q: Question, share: float, aic: float) -> float:
-        """How far a prediction is towards both margins × SAFETY (1: clears both)."""
-        return float(np.clip(min(share / (SAFETY * self.min_gain),
-                                 -aic / (SAFETY * self.drop(q))), 0.0, 1.0))
+        """How far a prediction is towards both margins × SAFETY (1: clears both); a
+        rival question has the separation margin only (both models explain the stage)."""
+        towards_aic = -aic / (SAFETY * self.drop(q))
+        if q.rival is not None:
+            return float(np.clip(towards_aic, 0.0, 1.0))
+        return float(np.clip(min(share / (SAFETY * self.min_gain), towards_aic), 0.0, 1.0))
 
     def clears(self, q: Question, share: float, aic: float) -> bool:
-        return share >= self.min_gain and aic <= -self.drop(q)
+        return (q.rival is not None or share >= self.min_gain) and aic <= -self.drop(q)
 
 
 @dataclass
@@ -108,17 +127,42 @@ def test_blocks(ctx: Context, pt: PreparedTest, stage: str, duration_s: float) -
     model = scorer.model
     costs, res = scorer.cost_and_residuals(ctx.p)
     points = [ctx.p] + ([scorer.reset_start(ctx.p)] if scorer.reset else [])
-    jacs, sigs = [], []
+    jacs, sigs, rival_jacs = [], [], []
     qs = ctx.stage_questions(stage)
     for q in points:
         jac = refit_jacobian(scorer, q)
         jacs.append({n: jac[:, i] for i, n in enumerate(scorer.stage_free)})
-        rows = np.repeat(q[None], len(qs), axis=0)
+        sig = np.zeros((len(qs), jac.shape[0]))
+        sizes = [i for i, question in enumerate(qs) if question.rival is None]
+        if sizes:
+            sig[sizes] = effect_signals(scorer, q, np.stack(
+                [qs[i].models(q, model)[1] for i in sizes]))
+        rival_jacs.append({})
         for i, question in enumerate(qs):
-            for n, v in question.values.items():
-                rows[i, model.param_index[n]] = v
-        sigs.append(effect_signals(scorer, q, rows) if qs else np.zeros((0, jac.shape[0])))
-    return TestBlocks(pt.id, stage, duration_s, len(jac), float(costs[0]), res, jacs, sigs)
+            if question.rival is not None:
+                sig[i], rival_jacs[-1][question.key] = _rival_blocks(ctx, scorer, question, q)
+        sigs.append(sig)
+    return TestBlocks(pt.id, stage, duration_s, len(jac), float(costs[0]), res, jacs, sigs,
+                      rival_jacs)
+
+
+def _rival_blocks(ctx: Context, scorer: StageScorer, q: Question, p: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The named model's signal against the rival's (the rival's twin subtracted) and
+    what the rival's refit can change: its stage's parameters and its own, at its model."""
+    rival, _ = q.models(p, scorer.model)
+    free = list(dict.fromkeys([*scorer.stage_free, *q.rival.free]))
+    own = StageScorer(scorer.tests, scorer.stage, ctx.p, ctx.scales, decimate=ctx.decimate,
+                      free=free, reset=ctx.reset)
+    return effect_signals(scorer, rival, p[None])[0], refit_jacobian(own, rival)
+
+
+def _left_energy(sig: np.ndarray, jac: np.ndarray) -> np.ndarray:
+    """0.5·|signal|² left after projecting out what ``jac``'s columns can take over."""
+    basis = column_basis(jac)
+    left = sig - (sig @ basis) @ basis.T
+    e = 0.5 * np.einsum("ij,ij->i", left, left)
+    return np.where(np.isfinite(e), e, np.nan)
 
 
 def score(ctx: Context, stage: str, blocks: list[TestBlocks]) -> list[tuple[float, float]]:
@@ -134,11 +178,14 @@ def score(ctx: Context, stage: str, blocks: list[TestBlocks]) -> list[tuple[floa
                                           for n in names]) if names else np.zeros((b.rows, 0))
                          for b in blocks])
         sig = np.hstack([b.signals[k] for b in blocks])
-        basis = column_basis(jac)
-        left = sig - (sig @ basis) @ basis.T
-        e = 0.5 * np.einsum("ij,ij->i", left, left)
-        energy = np.fmax(energy, np.where(np.isfinite(e), e, np.nan))
-    return [predicted_score(cost, 0.0 if np.isnan(e) else float(e), n_eff, len(q.spec.free))
+        e = _left_energy(sig, jac)
+        for i, q in enumerate(qs):
+            if q.rival is not None:
+                own = np.vstack([b.rival_jacobians[k][q.key] for b in blocks])
+                e[i] = _left_energy(sig[i:i + 1], own)[0]
+        energy = np.fmax(energy, e)
+    return [predicted_score(cost, 0.0 if np.isnan(e) else float(e), n_eff,
+                            0 if q.rival is not None else len(q.spec.free))
             for q, e in zip(qs, energy, strict=True)]
 
 

@@ -1,16 +1,24 @@
 """What discovery left open, as questions a test can answer.
 
-A *question* is one catalogue pair at one size: "would these tests name
+A *size question* is one catalogue pair at one size: "would these tests name
 ``effect`` in ``component`` if the rig had it at this size?" Discovery's
 resolution step answers it for the campaign's own tests (``resolution`` in
 ``discovery.json``); the pairs it marks as not resolved at the catalogue's
 realistic size are the open questions, and an engineer may ask more
 (``--target``: a production-size backlash, a smaller asymmetry).
+
+A *rival question* is a finding and a look-alike discovery did not rule out
+(``alternatives`` of a finding: the winner was better in fewer than 95 % of
+the resamples): "which of the two does the rig have?" Its two models are the
+extended model as discovery left it and the same model with the named effect
+off and the rival at the size its refit reached.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from mbst.core.model import EffectSpec, ModelDefinition
 from mbst.discovery.rounds.resolution import scaled_size
@@ -31,14 +39,31 @@ class Question:
     headline: dict[str, float] = field(default_factory=dict)
     # discovery's own prediction on the campaign (share of the stage cost, ΔAIC)
     before: tuple[float, float] | None = None
+    # a rival question: the look-alike, and what turns the named model into its model
+    # (the named effect off, the rival at its refitted size)
+    rival: EffectSpec | None = None
+    rival_values: dict[str, float] = field(default_factory=dict)
 
     @property
     def key(self) -> str:
-        return self.spec.key
+        return self.spec.key if self.rival is None else f"{self.spec.key}|{self.rival.key}"
 
     def label(self) -> str:
+        if self.rival is not None:
+            return (f"{self.spec.effect} in {self.spec.component} or {self.rival.effect} in "
+                    f"{self.rival.component}")
         size = ", ".join(f"{h} {v:.4g}" for h, v in self.headline.items())
         return f"{self.spec.effect} in {self.spec.component} ({size})"
+
+    def models(self, p: np.ndarray, model: ModelDefinition
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The two competing parameter vectors around ``p`` (the model as it stands):
+        (without, with) the effect for a size question, (rival, named) for a rival one."""
+        other = np.array(p, float)
+        for n, v in (self.rival_values if self.rival is not None else self.values).items():
+            other[model.param_index[n]] = v
+        return (other, np.array(p, float)) if self.rival is not None else \
+            (np.array(p, float), other)
 
 
 def parse_target(text: str, model: ModelDefinition) -> tuple[EffectSpec, dict[str, float]]:
@@ -108,4 +133,49 @@ def open_questions(record: dict, model: ModelDefinition, targets: list[str]
         out = [q for q in out if q.key != spec.key]
         out.append(Question(spec, stages[spec.key], values, "asked (--target)",
                             _headline(spec, values)))
-    return out, notes
+    return out + rival_questions(record, model), notes
+
+
+def _refitted_size(record: dict, finding: dict, rival: EffectSpec) -> dict[str, float]:
+    """The rival's parameters as its refit left them in the round that named the finding
+    (its headline in the round's candidate rows), else its realistic size."""
+    values = dict(rival.default_size)
+    key = f"{finding['effect']}:{finding['component']}"
+    for rnd in record.get("rounds", []):
+        if rnd.get("accepted") != key:
+            continue
+        for c in rnd.get("candidates", []):
+            if c.get("key") == rival.key:
+                values.update({rival.headline[h]: float(v)
+                               for h, v in (c.get("headline") or {}).items()
+                               if h in rival.headline})
+    return values
+
+
+def rival_questions(record: dict, model: ModelDefinition) -> list[Question]:
+    """A finding and each look-alike discovery did not rule out, unless that look-alike
+    is named too (then both are in the model) or moves as one body with it
+    (``indistinguishable_from``: no test of these cut-outs parts them)."""
+    findings = record.get("findings", [])
+    named = {f"{f['effect']}:{f['component']}" for f in findings}
+    out = []
+    for f in findings:
+        key = f"{f['effect']}:{f['component']}"
+        if key not in model.effects or not f.get("stage"):
+            continue
+        spec = model.effects[key]
+        joint = set(f.get("indistinguishable_from") or [])
+        for alt in f.get("alternatives") or []:
+            same_body = alt["effect"] == f["effect"] and alt["component"] in joint
+            if alt["key"] in named or same_body or alt["key"] not in model.effects:
+                continue
+            rival = model.effects[alt["key"]]
+            values = {n: model.spec(n).default for n in spec.free}
+            values.update(_refitted_size(record, f, rival))
+            share = alt.get("winner_better_share")
+            why = "a look-alike not ruled out" + (
+                f" (the finding better in {100 * share:.0f} % of the resamples)"
+                if share is not None else "")
+            out.append(Question(spec, f["stage"], {}, why, _headline(rival, values),
+                                rival=rival, rival_values=values))
+    return out

@@ -44,6 +44,7 @@ def _question_rows(res: ResolveResult) -> list[dict]:
         b = res.before.get(q.key, (0.0, 0.0))
         a = res.after.get(q.key, b)
         rows.append({"effect": q.spec.effect, "component": q.spec.component, "stage": q.stage,
+                     "rival": q.rival.key if q.rival is not None else None,
                      "reason": q.reason, "size": q.headline,
                      "aic_drop_needed": res.margins.drop(q),
                      "share_before": b[0], "aic_delta_before": b[1],
@@ -69,6 +70,7 @@ def candidate_table(res: ResolveResult) -> pd.DataFrame:
             rows.append({"candidate": c.id, "scenario": c.scenario, "duration_s": c.duration_s,
                          "input": yaml.safe_dump(c.input, default_flow_style=True).strip(),
                          "effect": q.spec.effect, "component": q.spec.component,
+                         "rival": q.rival.key if q.rival is not None else "",
                          "predicted_share": share, "predicted_aic_delta": aic})
     return pd.DataFrame(rows)
 
@@ -98,15 +100,20 @@ def _fmt_size(size: dict) -> str:
 def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) -> str:
     rec = resolve_record(res, "")
     lines = [f"# Next tests for '{res.campaign.name}': what discovery could not decide", "",
-             "Each question is one catalogue pair at one size: would discovery name it if the "
-             "rig had it? Predicted share of its stage's cost and ΔAIC against discovery's "
-             f"margins (share ≥ {100 * res.margins.min_gain:.0f} %, ΔAIC below the needed "
-             f"drop); the design aims at {SAFETY}× both. Method: "
-             "`src/mbst/plan/resolve/design.py`.", "",
+             "A size question is one catalogue pair at one size: would discovery name it if "
+             "the rig had it? Predicted share of its stage's cost and ΔAIC against "
+             f"discovery's margins (share ≥ {100 * res.margins.min_gain:.0f} %, ΔAIC below "
+             "the needed drop). A rival question (*A or B*) is a finding and a look-alike "
+             "discovery did not rule out: the share and ΔAIC are what the look-alike's refit "
+             "leaves of the finding's signal, and it is decided when the finding would win "
+             "in 95 % of resamples (ΔAIC ≤ −10.8). The design aims at "
+             f"{SAFETY}× the margins. Method: `src/mbst/plan/resolve/design.py`.", "",
              "| pair | size | why asked | share before | ΔAIC before | share after | "
              "ΔAIC after | ΔAIC needed | decided after |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rec["questions"]:
-        lines.append(f"| {r['effect']} in {r['component']} | {_fmt_size(r['size'])} | "
+        pair = f"{r['effect']} in {r['component']}" + (
+            f" or {r['rival'].replace(':', ' in ')}" if r["rival"] else "")
+        lines.append(f"| {pair} | {_fmt_size(r['size'])} | "
                      f"{r['reason']} | {100 * r['share_before']:.1f} % | "
                      f"{r['aic_delta_before']:.1f} | {100 * r['share_after']:.1f} % | "
                      f"{r['aic_delta_after']:.1f} | −{r['aic_drop_needed']:.1f} | "
@@ -130,7 +137,9 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
                   "test alone would give):", ""]
         for r in undecided:
             t = r["test_time_needed_s"]
-            lines.append(f"- {r['effect']} in {r['component']}: " + (
+            lines.append(f"- {r['effect']} in {r['component']}"
+                         + (f" or {r['rival'].replace(':', ' in ')}" if r["rival"] else "")
+                         + ": " + (
                 f"decided after {t:.0f} s of added tests (the same greedy choice, "
                 "past the budget)" if t is not None else
                 f"not within {NEEDED_UP_TO:g}× the campaign's test time: a refit of the "
@@ -162,10 +171,7 @@ def question_figure(res: ResolveResult, path: Path) -> None:
             if c.scenario != q.stage:
                 continue
             pt = res.predicted[c.id]
-            p_eff = res.context.p.copy()
-            for n, v in q.values.items():
-                p_eff[pt.model.param_index[n]] = v
-            y0, y1 = simulate_twin(pt, res.context.p), simulate_twin(pt, p_eff)
+            y0, y1 = (simulate_twin(pt, p) for p in q.models(res.context.p, pt.model))
             for ch in pt.measured:
                 diff_rms = float(np.sqrt(np.mean((y1[ch] - y0[ch]) ** 2)))
                 snr = diff_rms / max(pt.noise.get(ch, 0.0), 1e-12)
@@ -174,13 +180,15 @@ def question_figure(res: ResolveResult, path: Path) -> None:
         if best is None:
             continue
         snr, c, pt, ch, y0, y1 = best
-        ax[0].plot(pt.time_s, y0, lw=1, label="without")
-        ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=f"with {q.spec.effect}")
-        ax[0].set_title(f"{q.spec.effect} in {q.spec.component}: {c.id}", fontsize=9)
+        names = ((f"{q.rival.effect} in {q.rival.component}", "named: " + q.spec.effect)
+                 if q.rival is not None else ("without", f"with {q.spec.effect}"))
+        ax[0].plot(pt.time_s, y0, lw=1, label=names[0])
+        ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=names[1])
+        ax[0].set_title(f"{q.label()}: {c.id}", fontsize=9)
         ax[0].set_ylabel(ch, fontsize=8)
         ax[0].legend(fontsize=7)
         sigma = pt.noise.get(ch, 0.0)
-        ax[1].plot(pt.time_s, y1 - y0, lw=1, color="C3", label="with − without")
+        ax[1].plot(pt.time_s, y1 - y0, lw=1, color="C3", label=f"{names[1]} − {names[0]}")
         ax[1].axhspan(-2 * sigma, 2 * sigma, color="0.85", label="±2σ sensor noise (filtered)")
         ax[1].set_title(f"difference, rms {snr:.1f}× the sensor noise", fontsize=9)
         ax[1].legend(fontsize=7)
