@@ -184,7 +184,7 @@ def question_figure(res: ResolveResult, path: Path) -> None:
                  if q.rival is not None else ("without", f"with {q.spec.effect}"))
         ax[0].plot(pt.time_s, y0, lw=1, label=names[0])
         ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=names[1])
-        ax[0].set_title(f"{q.label()}: {c.id}", fontsize=9)
+        ax[0].set_title(f"{q.label()}\n{c.id}", fontsize=8)
         ax[0].set_ylabel(ch, fontsize=8)
         ax[0].legend(fontsize=7)
         sigma = pt.noise.get(ch, 0.0)
