@@ -17,8 +17,9 @@ import pytest
 import yaml
 
 from mbst.cli import main
+from mbst.discovery.structure import StageScorer
 from mbst.identify.cascade import IdentifySettings, identify
-from mbst.identify.fitting import prepare_test, simulate_twin
+from mbst.identify.fitting import channel_scales, prepare_test, simulate_twin
 from mbst.identify.replicate import raw_noise
 from mbst.io.campaign import read_campaign
 from mbst.plan.resolve import ResolveError, resolve
@@ -208,7 +209,15 @@ def test_a_look_alike_discovery_did_not_rule_out_is_decided_by_a_designed_test(
     idx = camp.model().param_index
     assert named[idx["steering_column.stribeck_friction.static_to_coulomb_ratio"]] > 1.0
     assert rival[idx["steering_column.stribeck_friction.static_to_coulomb_ratio"]] == 1.0
-    assert rival[idx["steering_column.asymmetric_friction.ratio"]] == 1.45  # its refit's
+    # linearised at the rival's own fit: refitted on the campaign from its round's size
+    start = named.copy()
+    start[idx["steering_column.stribeck_friction.static_to_coulomb_ratio"]] = 1.0
+    start[idx["steering_column.asymmetric_friction.ratio"]] = 1.45
+    tests = [base.prepared[s.id] for s in camp.identification_tests()]
+    scorer = StageScorer(tests, "blocked_column", p, channel_scales(tests))
+    before, after = scorer.costs(np.stack([start, rival])).sum(axis=1)
+    assert after < 0.9 * before
+    assert q.headline["ratio"] == rival[idx["steering_column.asymmetric_friction.ratio"]]
     assert not res.margins.clears(q, *res.before[q.key])
     assert res.margins.clears(q, *res.after[q.key])
     assert res.added() and all(c.scenario == "blocked_column" for _, c in res.added())

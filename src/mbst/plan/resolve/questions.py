@@ -43,6 +43,10 @@ class Question:
     # (the named effect off, the rival at its refitted size)
     rival: EffectSpec | None = None
     rival_values: dict[str, float] = field(default_factory=dict)
+    # the share of discovery's resamples in which the finding beat the rival
+    observed_share: float | None = None
+    # the likelihood ratio the design must reach for this rival (design.calibrate_rivals)
+    lr_needed: float | None = None
 
     @property
     def key(self) -> str:
@@ -177,5 +181,5 @@ def rival_questions(record: dict, model: ModelDefinition) -> list[Question]:
                 f" (the finding better in {100 * share:.0f} % of the resamples)"
                 if share is not None else "")
             out.append(Question(spec, f["stage"], {}, why, _headline(rival, values),
-                                rival=rival, rival_values=values))
+                                rival=rival, rival_values=values, observed_share=share))
     return out

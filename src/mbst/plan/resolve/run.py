@@ -14,7 +14,16 @@ from mbst.identify.fitting import PreparedTest, channel_scales, prepare_test
 from mbst.identify.replicate import raw_noise
 from mbst.io.campaign import Campaign, read_campaign
 from mbst.plan.resolve.candidates import Candidate, candidate_tests, predicted_test
-from mbst.plan.resolve.design import Context, Margins, Step, greedy, test_blocks, time_needed
+from mbst.plan.resolve.design import (
+    Context,
+    Margins,
+    Step,
+    calibrate_rivals,
+    greedy,
+    refit_rival,
+    test_blocks,
+    time_needed,
+)
 from mbst.plan.resolve.questions import Question, ResolveError, open_questions
 from mbst.systems.eps.channels import SYSTEM_NAME
 
@@ -136,6 +145,9 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     questions, notes = open_questions(record, model, targets or [])
     ctx = Context(p, channel_scales(ids), st["stage_free"], st["compensating"], st["decimate"],
                   questions, margins)
+    ctx.questions = questions = [q if q.rival is None else
+                                 refit_rival(ctx, q, model.stage_tests(q.stage, ids))
+                                 for q in questions]
     stages = {q.stage for q in questions}
     logged: dict[str, list[str]] = {}
     for stage in sorted(stages):
@@ -154,6 +166,7 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
                             np.random.default_rng([seed, 11, i]))
         predicted[c.id] = pt
         ctx.blocks[c.id] = test_blocks(ctx, pt, c.scenario, c.duration_s)
+    calibrate_rivals(ctx, logged)
     campaign_time = sum(float(pt.time_s[-1] - pt.time_s[0]) for pt in ids)
     budget = budget_share * campaign_time
     # first how much test time each question needs; then the budget goes to the questions
