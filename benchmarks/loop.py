@@ -17,18 +17,32 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 SENSORS = ("steering_angle_rad,steering_torque_nm,rack_position_m,tie_rod_force_left_n,"
            "tie_rod_force_right_n,motor_angle_rad")
-# planted effect, the question asked beside discovery's own (None: only discovery's)
+
+
+class Case(NamedTuple):
+    effect: str  # planted
+    target: str | None = None  # the question asked beside discovery's own
+    bench: tuple[str, ...] = ("--sensors", SENSORS)
+    discover: tuple[str, ...] = ()
+    seed: int | None = None  # a fixed rig (default: --seed)
+
+
 CASES = {
-    "stribeck_column": ("stribeck_friction:steering_column", None),
-    "asymmetry_column": ("asymmetric_friction:steering_column", None),
-    "power_law_column": ("power_law_damping:steering_column", None),
-    "power_law_motor": ("power_law_damping:motor", None),
+    "stribeck_column": Case("stribeck_friction:steering_column"),
+    "asymmetry_column": Case("asymmetric_friction:steering_column"),
+    "power_law_column": Case("power_law_damping:steering_column"),
+    "power_law_motor": Case("power_law_damping:motor"),
     # a production-size worm-gear backlash (eps-model.md: 0.1-0.6°), 0.35°, asked at 0.3°
-    "backlash_0p35deg": ("backlash:worm_gear:width_rad=0.0061",
-                         "backlash:worm_gear:width_rad=0.0052"),
+    "backlash_0p35deg": Case("backlash:worm_gear:width_rad=0.0061",
+                             "backlash:worm_gear:width_rad=0.0052"),
+    # rival questions: on this realistic rig discovery names rack presliding with two
+    # look-alikes it does not rule out (motor presliding, position-dependent rack friction)
+    "rival_presliding_rack": Case("presliding_hysteresis:rack", bench=("--realistic",),
+                                  discover=("--no-sparse", "--no-neural"), seed=104),
 }
 
 
@@ -39,28 +53,38 @@ def mbst(*args: str) -> None:
 def named(disc: Path) -> str:
     rec = json.loads((disc / "discovery.json").read_text())
     out = [f"{f['effect']} in {f['component']} ({f.get('confidence', 0):.2f})"
+           + "".join(f", not ruled out: {a['effect']} in {a['component']}"
+                     for a in f.get("alternatives") or [])
            for f in rec["findings"]]
     return "; ".join(out) or "nothing"
 
 
 def one(tmp: Path, key: str, seed: int) -> dict:
-    effect, target = CASES[key]
+    case = CASES[key]
     t0 = time.perf_counter()
-    bench = ["--plan", "compact", "--seed", str(seed), "--effect", effect, "--sensors", SENSORS]
+    bench = ["--plan", "compact", "--seed", str(case.seed or seed), "--effect", case.effect,
+             *case.bench]
     mbst("bench", "--out", str(tmp / "before"), *bench)
-    mbst("discover", str(tmp / "before" / "campaign"), "--out", str(tmp / "before" / "disc"))
-    extra = ["--target", target] if target else []
+    mbst("discover", str(tmp / "before" / "campaign"), "--out", str(tmp / "before" / "disc"),
+         *case.discover)
+    extra = ["--target", case.target] if case.target else []
     mbst("plan", "--resolve", str(tmp / "before" / "disc"), "--out", str(tmp / "resolve"),
          *extra)
-    mbst("bench", "--out", str(tmp / "after"), *bench[2:],
+    mbst("bench", "--out", str(tmp / "after"), *bench,
          "--tests-from", str(tmp / "resolve" / "campaign.yaml"))
-    mbst("discover", str(tmp / "after" / "campaign"), "--out", str(tmp / "after" / "disc"))
+    mbst("discover", str(tmp / "after" / "campaign"), "--out", str(tmp / "after" / "disc"),
+         *case.discover)
     design = json.loads((tmp / "resolve" / "resolve.json").read_text())
-    spec = effect.split(":")[:2]
-    q = next((r for r in design["questions"] if [r["effect"], r["component"]] == spec), None)
-    return {"case": key, "planted": effect,
+    spec = case.effect.split(":")[:2]
+    q = next((r for r in design["questions"]
+              if [r["effect"], r["component"]] == spec and not r["rival"]), None)
+    rivals = [f"{r['rival']}: ΔAIC {r['aic_delta_before']:.0f} → {r['aic_delta_after']:.0f} "
+              f"(needed −{r['aic_drop_needed']:.0f})"
+              for r in design["questions"] if r["rival"]]
+    return {"case": key, "planted": case.effect,
             "share": (q["share_before"], q["share_after"]) if q else None,
             "aic": (q["aic_delta_before"], q["aic_delta_after"]) if q else None,
+            "rivals": "; ".join(rivals),
             "named_before": named(tmp / "before" / "disc"),
             "named_after": named(tmp / "after" / "disc"),
             "tests_added": len(design["added_tests"]),
@@ -76,6 +100,8 @@ def table(rows: list[dict]) -> str:
         sh = (f"{100 * r['share'][0]:.1f} → {100 * r['share'][1]:.1f} %" if r["share"]
               else "not asked")
         aic = f"{r['aic'][0]:.0f} → {r['aic'][1]:.0f}" if r["aic"] else "—"
+        if r["rivals"]:
+            aic = f"rivals: {r['rivals']}"
         lines.append(f"| {r['planted']} | {sh} | {aic} | {r['named_before']} | "
                      f"{r['named_after']} | {r['tests_added']} | {r['time_added_s']:.0f} s "
                      f"({100 * r['time_added_s'] / r['campaign_s']:.0f} %) |")

@@ -54,9 +54,6 @@ class EffectSpec:
     ``discovery/resolution.py`` scales them to find the smallest size a
     campaign resolves. Those in ``inverse_size`` make the effect stronger as
     they shrink (a Dahl stiffness: the presliding displacement is F_c/σ).
-    ``power_law`` maps an exponent among the free parameters to the coefficient it
-    raises the speed under (b in b·|v|^a): the coefficient's unit changes with the
-    exponent, so the structure test starts each exponent with it rescaled.
     """
 
     effect: str
@@ -67,7 +64,6 @@ class EffectSpec:
     absorbed_by: tuple[str, ...] = ()
     size_parameters: tuple[str, ...] = ()
     inverse_size: tuple[str, ...] = ()
-    power_law: dict[str, str] = field(default_factory=dict)
 
     @property
     def key(self) -> str:

@@ -116,34 +116,6 @@ def start_grid(spec: EffectSpec, model: ModelDefinition) -> list[dict[str, float
     return [dict(zip(spec.free, combo, strict=True)) for combo in itertools.product(*axes)]
 
 
-# Speeds (the element's own unit) at which a power-law start keeps the linear term's damping:
-# the coefficient b·s^(1−a) for exponent a. The speeds an element runs at span decades
-# (a motor at 10-100 rad/s, a rack at 0.01-0.1 m/s); at s = 1 alone a motor's exponent 0.5
-# started with a tenth of its damping, and its refit stopped at 0.96 (2 % of the stage for
-# a predicted 19 %).
-REFERENCE_SPEEDS = (1e-3, 1e-2, 0.1, 1.0, 10.0, 100.0)
-
-
-def with_power_law_coefficients(grid: list[dict[str, float]], spec: EffectSpec,
-                                p: np.ndarray, model: ModelDefinition
-                                ) -> list[dict[str, float]]:
-    """Each grid point once per reference speed, the coefficient of each power law
-    (``EffectSpec.power_law``) rescaled from ``p`` so the damping there is unchanged."""
-    if not spec.power_law:
-        return grid
-    out = []
-    for g in grid:
-        for s in REFERENCE_SPEEDS:
-            h = dict(g)
-            for a, b in spec.power_law.items():
-                ps = model.spec(b)
-                h[b] = float(np.clip(p[model.param_index[b]] * s ** (1.0 - g[a]),
-                                     ps.lower, ps.upper))
-            if h not in out:
-                out.append(h)
-    return out
-
-
 def effective_samples(residuals: list[np.ndarray]) -> float:
     """Number of independent samples in coloured residuals (integrated autocorrelation).
 
@@ -360,8 +332,7 @@ class StageScorer:
         t0 = time.perf_counter()
         p_base, cost_base = self.base_refit()
         if start is None:
-            grid = with_power_law_coefficients(start_grid(spec, self.model), spec, p_base,
-                                               self.model)
+            grid = start_grid(spec, self.model)
             ps, grid_cost = self._grid(p_base, grid)
             order = np.argsort(grid_cost)
             starts = [ps[i] for i in order[: self.starts]]

@@ -225,7 +225,6 @@ def _friction_effects(elem: str) -> list[EffectSpec]:
     vs = _FRICTION_TYPICAL[elem][8]
     sigma = _FRICTION_TYPICAL[elem][9]
     fp = lambda f: friction_param(elem, f)
-    viscous = fp("viscous")
     out = [
         EffectSpec("stribeck_friction", elem,
                    {"static_to_coulomb_ratio": fp("stribeck_friction.static_to_coulomb_ratio"),
@@ -245,8 +244,7 @@ def _friction_effects(elem: str) -> list[EffectSpec]:
         EffectSpec("power_law_damping", elem,
                    {"exponent": fp("power_law_damping.exponent")},
                    (fp("power_law_damping.exponent"),),
-                   {fp("power_law_damping.exponent"): 0.5},
-                   power_law={fp("power_law_damping.exponent"): viscous}),
+                   {fp("power_law_damping.exponent"): 0.5}),
         EffectSpec("asymmetric_friction", elem,
                    {"ratio": fp("asymmetric_friction.ratio")},
                    (fp("asymmetric_friction.ratio"),),
