@@ -204,6 +204,21 @@ def test_clean_damper_gives_an_empty_answer(tmp_path):
     assert _discover(tmp_path, {}, seed=4).findings == []
 
 
+def test_two_planted_effects_are_both_named_and_both_kept(tmp_path):
+    """A play and an asymmetric level: named one after the other, and the backward check
+    (each earlier effect taken out of the final model) keeps the first — it is needed."""
+    camp = read_campaign(run_friction_damper_bench(
+        tmp_path, {"band.backlash.width_m": 1.2e-3, "band.asymmetric_friction.ratio": 1.35},
+        seed=6))
+    result = discover(camp, DiscoverSettings(max_effects=3, neural=False))
+    named = {f.effect: f.parameters for f in result.findings}
+    assert named.keys() == {"backlash", "asymmetric_friction"}
+    assert named["backlash"]["width_m"] == pytest.approx(1.2e-3, rel=0.1)
+    assert named["asymmetric_friction"]["ratio"] == pytest.approx(1.35, rel=0.05)
+    (backward,) = [r for r in result.rounds if r.get("kind") == "backward"]
+    assert [r["needed"] for r in backward["checked"]] == [True] and not backward["dropped"]
+
+
 @pytest.mark.parametrize("planted", [
     ("band.asymmetric_friction.ratio", 1.35, "asymmetric_friction", "ratio"),
     ("band.contact_stiffening.exponent", 1.7, "contact_stiffening", "exponent"),

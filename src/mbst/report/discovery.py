@@ -172,7 +172,9 @@ def markdown_summary(result: DiscoveryResult) -> str:
                          " (of what these tests can resolve: see below)."
                          if result.resolution else "."))
     for r in result.rounds:
-        if r.get("reason"):
+        if r.get("kind") == "backward":
+            lines += ["", f"{r['reason'][0].upper()}{r['reason'][1:]}."]
+        elif r.get("reason"):
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
     lines += untested_lines(result.rounds)
     lines += signature_lines(result)

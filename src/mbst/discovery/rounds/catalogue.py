@@ -12,6 +12,7 @@ import logging
 import time
 
 from mbst.discovery import acceptance, extension
+from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
 from mbst.discovery.structure import CandidateScore, StageScorer, structure_test
 
@@ -29,6 +30,7 @@ def structure_rounds(state: DiscoveryState) -> None:
             break
     if bar is not None:
         bar.close()
+    backward_check(state)
     state.timings["structure_s"] = time.perf_counter() - t0
 
 
