@@ -172,9 +172,10 @@ def signature_confidence(sig: ChannelSignature) -> float:
     copies, times the part of the held-out share above the best copy's.
 
     ``1 − p`` alone is 0.95 as soon as the share beats all 19 copies, by a hair or by
-    far: a clean realistic rig (drawn parameters, known values off, a sensor lag) got a
-    "ripple periodic in pinion angle" at 0.95 from 8.1 % of its torque residual against
-    6.9 % by chance — a model mismatch that the periodic group fitted best, not a ripple.
+    far: a realistic rig (drawn parameters, known values off, a sensor lag) whose worm-gear
+    backlash was named got a "ripple periodic in pinion angle" at 0.95 from 8.1 % of its
+    torque residual against 6.9 % by chance — what the periodic group fitted best of the
+    mismatch, not a ripple.
     """
     share = sig.best.cv_share if sig.best is not None else 0.0
     above = (share - sig.chance_share) / share if share > 0 else 0.0
