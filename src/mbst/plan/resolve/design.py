@@ -134,18 +134,18 @@ def test_blocks(ctx: Context, pt: PreparedTest, stage: str, duration_s: float) -
     points = [ctx.p] + ([scorer.reset_start(ctx.p)] if scorer.reset else [])
     jacs, sigs, rival_jacs = [], [], []
     qs = ctx.stage_questions(stage)
-    for q in points:
-        jac = refit_jacobian(scorer, q)
+    for point in points:
+        jac = refit_jacobian(scorer, point)
         jacs.append({n: jac[:, i] for i, n in enumerate(scorer.stage_free)})
         sig = np.zeros((len(qs), jac.shape[0]))
-        sizes = [i for i, question in enumerate(qs) if question.rival is None]
+        sizes = [i for i, q in enumerate(qs) if q.rival is None]
         if sizes:
-            sig[sizes] = effect_signals(scorer, q, np.stack(
-                [qs[i].models(q, model)[1] for i in sizes]))
+            sig[sizes] = effect_signals(scorer, point, np.stack(
+                [qs[i].models(point, model)[1] for i in sizes]))
         rival_jacs.append({})
-        for i, question in enumerate(qs):
-            if question.rival is not None:
-                sig[i], rival_jacs[-1][question.key] = _rival_blocks(ctx, scorer, question, q)
+        for i, q in enumerate(qs):
+            if q.rival is not None:
+                sig[i], rival_jacs[-1][q.key] = _rival_blocks(ctx, scorer, q, point)
         sigs.append(sig)
     return TestBlocks(pt.id, stage, duration_s, len(jac), float(costs[0]), res, jacs, sigs,
                       rival_jacs)

@@ -13,11 +13,12 @@ from __future__ import annotations
 import numpy as np
 
 from mbst.core.metrics import error_scores
-from mbst.systems.friction_damper.model import I_ASYM, I_FC, INTERNAL, simulate_batch
+from mbst.systems.friction_damper.model import INTERNAL, simulate_batch
 
 HYBRID = "physics+neural"
 # the band's state in the physics replay, where the error left is counted: unloaded means
-# under this share of its slip level (in the play or the soft start of the contact)
+# under this share of the largest force the replay carries in that direction (its slip
+# level: in the play or the soft start of the contact)
 BAND_STATES = ("unloaded", "elastic", "slipping")
 UNLOADED_SHARE = 0.1
 
@@ -52,19 +53,18 @@ def _hybrid(tests: list, p_ext: np.ndarray, learner) -> tuple[dict, dict[str, np
     predicted = {r["id"]: np.asarray(out["predicted"][r["id"]]["friction_force_n"], float)
                  for r in runs if r["id"] in controls}
     info = {"model": "extended physics + latent neural ODE on the force (torchdiffeq), "
-                     "driven by the displacement, its rate and the band's force and "
-                     "deflection; trained on the identification tests only",
+                     "driven by the displacement, its rate and the replay's band force, "
+                     "deflection and slip direction; trained on the identification tests only",
             "trained_on": out["trained_on"], "correction_gain": out["gains"],
             "train_seconds": round(out["train_seconds"], 1)}
     return info, predicted
 
 
-def band_states(pt, p: np.ndarray) -> np.ndarray:
-    """Index into ``BAND_STATES`` per sample: the band (nearly) unloaded, loaded
-    elastically, or slipping at its level (the replay's own signals)."""
-    sim = simulate_batch(pt, p)[0]
+def band_states(sim: dict[str, np.ndarray]) -> np.ndarray:
+    """Index into ``BAND_STATES`` per sample of a replay (``simulate_batch`` output): the
+    band (nearly) unloaded, loaded elastically, or slipping at its level."""
     band = sim["internal.band_force_n"]
-    level = np.where(band >= 0.0, p[I_FC], p[I_FC] * p[I_ASYM])
+    level = np.where(band >= 0.0, max(band.max(), 0.0), max(-band.min(), 0.0))
     slipping = sim["internal.band_slip_direction"] != 0.0
     return np.where(slipping, 2, np.where(np.abs(band) < UNLOADED_SHARE * level, 0, 1))
 
@@ -84,7 +84,8 @@ def error_shares(y: np.ndarray, fits: dict[str, np.ndarray], states: np.ndarray)
 
 def _test_record(pt, models: dict[str, np.ndarray], extra: dict[str, np.ndarray]) -> dict:
     y = pt.raw["friction_force_n"]
-    sims = {name: simulate_batch(pt, p)[0]["friction_force_n"] for name, p in models.items()}
+    runs = dict(zip(models, simulate_batch(pt, np.stack(list(models.values()))), strict=True))
+    sims = {name: run["friction_force_n"] for name, run in runs.items()}
     sims.update(extra)
     rec: dict = {"whole_test": {name: scores(y, yh) for name, yh in sims.items()}}
     pub = pt.spec.extra.get("published")
@@ -94,7 +95,7 @@ def _test_record(pt, models: dict[str, np.ndarray], extra: dict[str, np.ndarray]
         rec["window"] = {name: scores(y[a:b + 1], yh[a:b + 1]) for name, yh in sims.items()}
         rec["window"]["published"] = {k: pub[k] for k in ("fit_percent", "rmse_n", "nrmse")}
         rec["published_model"] = pub.get("model", "published")
-        states = band_states(pt, models["extended"])[a:b + 1]
+        states = band_states(runs["extended"])[a:b + 1]
         rec["error_by_band_state"] = error_shares(
             y[a:b + 1], {k: v[a:b + 1] for k, v in sims.items() if k != "base"}, states)
     return rec
