@@ -225,8 +225,15 @@ def test_a_look_alike_discovery_did_not_rule_out_is_decided_by_a_designed_test(
 
     # a look-alike named too, or the same effect in a part that moves as one body: no test
     # decides between them, so no question
+    same_body = _rival_record(camp, base, p, tmp_path / "same_body",
+                              [_alt("stribeck_friction:motor")], joint=["motor"])
+    assert resolve(same_body).questions == []
     both = _rival_record(camp, base, p, tmp_path / "both",
-                         [_alt("stribeck_friction:motor")], joint=["motor"])
+                         [_alt("asymmetric_friction:steering_column")])
+    rec = json.loads((both / "discovery.json").read_text())
+    rec["findings"].append({"effect": "asymmetric_friction", "component": "steering_column",
+                            "stage": "blocked_column", "parameters": {}})
+    (both / "discovery.json").write_text(json.dumps(rec))
     assert resolve(both).questions == []
 
 
