@@ -66,6 +66,22 @@ def test_a_ripple_in_motor_angle_is_periodic_in_motor_angle_at_its_order():
     assert sig.best.harmonic == 18
 
 
+def test_a_ripple_that_predicts_less_than_the_margin_above_chance_is_not_a_structure():
+    """The margin a catalogue effect must clear (10 % of what is left) holds for a
+    signature too: a ripple 11 % of the residual (3 % by chance) is seen, and below it."""
+    def strict(tests):
+        places = {t.id: k / (len(tests) - 1) - 0.5 for k, t in enumerate(tests)}
+        return describe_channel(tests, CH, places, noise_rms=0.02 * 0.2,
+                                input_name="steering_angle_rad", min_share=0.10)
+
+    tests = _campaign(lambda t, clean, motor: 0.012 * np.sin(18 * motor), seed=1)
+    loose = _describe(tests)
+    assert loose.structured and loose.best.group == "periodic:motor_angle_rad"
+    sig = strict(tests)
+    assert 0 < sig.above_chance < 0.10 and not sig.structured, sig
+    assert strict(_campaign(lambda t, clean, motor: 0.05 * np.sin(18 * motor))).structured
+
+
 def test_coloured_noise_alone_is_at_the_floor():
     for seed in range(3):
         sig = _describe(_campaign(lambda t, clean, motor: 0.0 * t, seed=seed))

@@ -15,6 +15,7 @@ from mbst.discovery.pipeline import FORMAT, DiscoverSettings, DiscoveryResult, d
 from mbst.discovery.residuals import dominant_regions
 from mbst.discovery.rounds.resolution import Resolution
 from mbst.discovery.rounds.unexplained import signature_record
+from mbst.discovery.signature import ChannelSignature
 from mbst.io.campaign import Campaign
 from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.report import discovery_figures as figures
@@ -214,13 +215,20 @@ def signature_lines(result: DiscoveryResult) -> list[str]:
         what = "—" if best is None else best.group + "".join(
             f", {k} = {v:.4g}" for k, v in best.quantities().items())
         level = sig.residual_rms / sig.noise_rms if sig.noise_rms > 0 else float("inf")
-        verdict = ("**structure left** (see figures/unexplained.png)" if sig.structured
-                   else f"nothing this library predicts (residual {level:.1f}× the "
-                   "white-noise estimate)")
         lines.append(f"| {sig.channel} | {100 * sig.gain_error:+.2f} % | {sig.residual_rms:.4g} | {sig.noise_rms:.4g} | {what} "
                      f"| {100 * (best.cv_share if best else 0):.1f} % | "
-                     f"{100 * sig.chance_share:.1f} % | {verdict} |")
+                     f"{100 * sig.chance_share:.1f} % | {_verdict(sig, level)} |")
     return lines
+
+
+def _verdict(sig: ChannelSignature, level: float) -> str:
+    """A channel's verdict: structure left, a small structure below the margin, or none."""
+    if sig.structured:
+        return "**structure left** (see figures/unexplained.png)"
+    if 0 < sig.above_chance < sig.min_share and sig.explained_rms > sig.noise_rms:
+        return (f"a small structure, {100 * sig.above_chance:.1f} % above chance: below the "
+                f"{100 * sig.min_share:.0f} % an effect must explain to be named")
+    return f"nothing this library predicts (residual {level:.1f}× the white-noise estimate)"
 
 
 def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:

@@ -6,7 +6,8 @@ tests is set, channel by channel, against a generic library
 of the model's own signals, drift over the campaign). A channel holds
 *unexplained structure* when a group of that library predicts its residual on
 held-out tests better than any of 19 phase-randomised copies of the residual
-(its own noise colour, no tie to the motion) and the part it predicts is larger
+(its own noise colour, no tie to the motion) by at least the share a catalogue
+effect must remove (``min_relative_gain``), and the part it predicts is larger
 than the channel's noise floor: its sensor noise with the input sensor's noise
 through the model (``identify.fitting.input_noise_floors``; until 2026-11-25 the
 sensor noise alone, and a clean compact campaign logging the motor angle got an
@@ -129,7 +130,8 @@ def _describe(state: DiscoveryState) -> None:
     for ch in channels:
         sig = describe_channel(tests, ch, places, _noise_rms(state, ch),
                                seed=state.settings.identify.seed,
-                               input_name=driving_input(state.model))
+                               input_name=driving_input(state.model),
+                               min_share=state.settings.min_relative_gain)
         if sig is not None:
             signatures.append(sig)
     state.signatures = signatures
@@ -149,6 +151,7 @@ def signature_record(sig: ChannelSignature) -> dict:
         "learned_gain": sig.learned_gain,
         "residual_rms": sig.residual_rms, "noise_rms": sig.noise_rms,
         "explained_rms": sig.explained_rms, "chance_share": sig.chance_share,
+        "above_chance": sig.above_chance, "min_share": sig.min_share,
         "p_value": sig.p_value,
         "best": None if best is None else {
             "group": best.group, "share_of_residual": best.cv_share, **best.quantities()},
