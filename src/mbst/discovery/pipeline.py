@@ -146,6 +146,10 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     locations = residual_locations(id_res)
     state = DiscoveryState.start(campaign, settings, base, id_res,
                                  dominant_regions(locations), timings)
+    # the floor each acceptance's "explained above the noise" counts: the input's noise
+    # through the base model as well as the sensors' (a production 0.35° worm-gear backlash
+    # was named at 0.55, "partly explained", with the angle's noise counted as structure)
+    state.measure_floors("catalogue rounds")
     # the network needs only the base residuals: it trains on one torch thread beside
     # the structure test, which leaves the second core idle between its refits
     pool = neural_job = None

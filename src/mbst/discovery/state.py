@@ -6,19 +6,28 @@ into it; the pipeline loops over the family's rounds and never reaches inside th
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
 from mbst.discovery.data import TestResidual
 from mbst.discovery.restarts import compensating_parameters
 from mbst.discovery.structure import effective_samples
 from mbst.identify.cascade import IdentifyResult, IdentifySettings
-from mbst.identify.fitting import PreparedTest, channel_scales, twins_of_tests
+from mbst.identify.fitting import (
+    PreparedTest,
+    channel_scales,
+    input_noise_floors,
+    twins_of_tests,
+)
 from mbst.io.campaign import Campaign
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from mbst.discovery.structure import CandidateScore
@@ -179,6 +188,18 @@ class DiscoveryState:
         held = set(self.base.preid.get("held", {}))
         names = [n for _, stage in self.model.cascade for n in stage if n not in held]
         return compensating_parameters(self.p, names, self.model)
+
+    def measure_floors(self, step: str) -> None:
+        """Each identification test's floor at the current model: the input's noise through
+        it beside the sensor's own (``PreparedTest.floor``); if that fails, the floor stays
+        the sensor noise alone and the failure is reported under ``step``."""
+        try:
+            input_noise_floors({pt.id: self.campaign.frame(pt.id) for pt in self.ids},
+                               self.ids, self.p, get_system(self.model.name).input_channel,
+                               self.settings.identify.seed)
+        except Exception as exc:  # the floor refines a judgement; it never sinks discovery
+            log.warning("input-noise floor failed: %s: %s", type(exc).__name__, exc)
+            self.failures.append(f"{step} (input-noise floor): {type(exc).__name__}: {exc}")
 
     def refit_cost(self) -> None:
         self.cost, _ = total_cost(self.ids, self.p, self.scales, self.settings.identify.decimate)

@@ -313,10 +313,12 @@ class StageScorer:
         return np.array([np.concatenate(r) for r in rows])
 
     def noise_cost(self) -> float:
-        """The cost the stage's sensor noise alone leaves (the noise the preprocessing
-        measured per test and channel, weighted as the fit weighs it)."""
+        """The cost the true model would leave on the stage: each test's floor per channel
+        (the sensor noise the preprocessing measured, with the input's noise through the
+        model where discovery measured it: ``PreparedTest.floor``), weighted as the fit
+        weighs it."""
         prob = self.problem(self.stage_free, self.base)
-        return float(sum(0.5 * (pt.noise.get(ch, 0.0) * prob._weights(pt, ch)) ** 2
+        return float(sum(0.5 * (pt.floor(ch) * prob._weights(pt, ch)) ** 2
                          * len(pt.time_s[:: prob.decimate])
                          for pt in self.tests for ch in prob.channels[pt.id]))
 

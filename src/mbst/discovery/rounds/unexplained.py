@@ -41,7 +41,6 @@ from mbst.discovery.signature import (
     feature_names,
 )
 from mbst.discovery.state import DiscoveryState, Finding
-from mbst.identify.fitting import input_noise_floors
 
 log = logging.getLogger(__name__)
 
@@ -94,19 +93,6 @@ def _noise_rms(state: DiscoveryState, channel: str) -> float:
     return float(math.sqrt(np.mean(np.square(levels)))) if levels else 0.0
 
 
-def _measure_floors(state: DiscoveryState) -> None:
-    """The input's noise through the extended model, per test and channel; if that fails,
-    the floor is the sensor noise alone (reported)."""
-    try:
-        input_noise_floors({pt.id: state.campaign.frame(pt.id) for pt in state.ids},
-                           state.ids, state.p, driving_input(state.model),
-                           state.settings.identify.seed)
-    except Exception as exc:  # the floor refines the check; it never sinks the round
-        log.warning("input-noise floor failed: %s: %s", type(exc).__name__, exc)
-        state.failures.append(f"unexplained round (input-noise floor): "
-                              f"{type(exc).__name__}: {exc}")
-
-
 def unexplained_round(state: DiscoveryState) -> None:
     """Describe the structure the extended model leaves; a failure here is reported and
     never costs the catalogue's answer."""
@@ -121,7 +107,7 @@ def unexplained_round(state: DiscoveryState) -> None:
 
 def _describe(state: DiscoveryState) -> None:
     """Each channel's signature; one ``unexplained`` finding for the structured ones."""
-    _measure_floors(state)
+    state.measure_floors("unexplained round")  # at the extended model
     tests = [residual_data(pt, state.p) for pt in state.ids]
     state.extended_residuals = tests
     places = campaign_places(state)
