@@ -230,6 +230,39 @@ def test_a_catalogue_name_that_an_outside_signature_rivals_is_put_in_doubt():
     assert alone.confirmation == "confirmed" and alone.confidence == 0.9
 
 
+def test_a_phase_free_name_whose_extension_fits_worse_is_put_in_doubt():
+    """A name from the stick-slip envelope (no output-error criterion, ``aic_delta`` None)
+    whose extension leaves its stage's output error larger is in doubt, even with nothing
+    above the floor left for a signature: a 20 mN·m cogging was rack Stribeck at 0.90.
+    The same name whose extension fits better stays as it is."""
+    from types import SimpleNamespace
+
+    from mbst.discovery.rounds.unexplained import DOUBTED_CONFIDENCE, judge_catalogue_names
+    from mbst.discovery.state import Finding
+
+    worse = _campaign(_lagged(0.012))
+    better = _campaign(lambda t, clean, motor: 0.0 * t)
+    places = {t.id: k / (len(better) - 1) - 0.5 for k, t in enumerate(better)}
+    sig = describe_channel(better, CH, places, 0.02 * 0.2, input_name="steering_angle_rad")
+    assert not sig.structured
+
+    def judged(base, extended) -> Finding:
+        f = Finding("stribeck_friction", "rack", {}, 0.9, "stick-slip envelope",
+                    "free_tie_rods", 0.9, None, {})
+        judge_catalogue_names([f], SimpleNamespace(
+            signatures=[sig], residuals=base, extended_residuals=extended, scales={CH: 1.0},
+            campaign=SimpleNamespace(tests=base), settings=SimpleNamespace(
+                identify=SimpleNamespace(seed=0)),
+            model=SimpleNamespace(name="eps-column-assist")))
+        return f
+
+    doubted = judged(better, worse)
+    assert doubted.confirmation == "in doubt" and doubted.confidence == DOUBTED_CONFIDENCE
+    assert "phase-free" in doubted.evidence
+    kept = judged(worse, better)
+    assert kept.confirmation == "confirmed" and kept.confidence == 0.9
+
+
 def test_the_input_noise_floor_is_what_the_true_model_leaves(tmp_path):
     """The model is driven by the measured steering angle, the rig by the true one: that
     noise through the model is part of every residual. On a campaign that logs the motor

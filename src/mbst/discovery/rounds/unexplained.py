@@ -225,6 +225,13 @@ def judge_catalogue_names(findings: list[Finding], state: DiscoveryState) -> Non
     for f in findings:
         if f.effect == "unexplained":
             continue
+        if _phase_free_and_worse(state, f):
+            f.confirmation = "in doubt"
+            f.confidence = min(f.confidence, DOUBTED_CONFIDENCE)
+            f.evidence += ("; IN DOUBT (a look-alike of something outside the catalogue?): "
+                           "named by a phase-free match, and the extension leaves the output "
+                           f"error on {f.stage} larger than the base model does")
+            continue
         left = [s for s in state.signatures if s.structured and _logged(state, s.channel, f)]
         if not left:
             f.confirmation = "confirmed"
@@ -259,6 +266,21 @@ def _doubt(state: DiscoveryState, f: Finding, sig: ChannelSignature,
         return (f"the extension leaves {sig.channel}'s output error larger on {f.stage} and "
                 f"what is left follows {sig.best.group}")
     return ""
+
+
+def _phase_free_and_worse(state: DiscoveryState, f: Finding) -> bool:
+    """A finding named by a criterion blind to phase (``aic_delta`` None: the stick-slip
+    envelope) whose extension makes its stage's output error larger, channels weighed as
+    the fit weighs them. An oscillation of another cause matches such an envelope as well:
+    a 20 mN·m motor cogging was named rack Stribeck friction at 0.90, the control FIT
+    falling 97.8 → 96.3 %, with nothing above the floor left for a signature to show."""
+    if f.aic_delta is not None or not state.extended_residuals:
+        return False
+
+    def cost(tests) -> float:
+        return sum(float(np.sum(t.residual(ch) ** 2)) / state.scales.get(ch, 1.0) ** 2
+                   for t in _stage_tests(tests, f.stage) for ch in t.measured)
+    return cost(state.extended_residuals) > cost(state.residuals) > 0
 
 
 def _stage_tests(tests: list, stage: str) -> list:
