@@ -209,9 +209,9 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
         explained = bootstrap["explained_above_noise"]
         if explained < 0.8:
             parts.append(f"PARTLY EXPLAINED: it removes {100 * explained:.0f} % of the stage's "
-                         "residual above the sensor-noise floor; the rest is something else "
-                         "(another effect, or one outside the catalogue), and the confidence "
-                         "is shared accordingly")
+                         "residual above the noise floor (sensor noise and the input's noise "
+                         "through the model); the rest is something else (another effect, or "
+                         "one outside the catalogue), and the confidence is shared accordingly")
     if cv.get("folds"):
         parts.append(f"leave-one-test-out: better on {cv['wins']}/{cv['folds']} held-out tests, "
                      f"held-out cost −{100 * cv['held_out_gain']:.1f} %")
