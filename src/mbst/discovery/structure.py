@@ -417,7 +417,8 @@ class StageScorer:
             # realistic rig): a 1.29° gear refitted from the grid's 1° to 0.41° and −19 %,
             # from the catalogue's 2° to 1.26° and −87 %
             starts.append(handbook)
-        if _several_basins(spec):
+        if _several_basins(spec) and float(np.min(cost)) > self.base_refit()[1]:
+            # the reset levels fit worse than the base at every width: profile them first
             starts.append(self._profiled_start(starts[0], grid))
         return starts
 
