@@ -208,7 +208,7 @@ def signature_lines(result: DiscoveryResult) -> list[str]:
              "against the best of 19 phase-randomised copies of the residual (chance). "
              "The channel's scale against its twin is taken out first and shown apart: a "
              "known ratio or a sensor gain a little off is calibration, not an effect.", "",
-             "| channel | scale error | residual rms | sensor noise | best signature | "
+             "| channel | scale error | residual rms | noise floor | best signature | "
              "held-out share | chance | verdict |", "|---|---|---|---|---|---|---|---|"]
     for sig in result.signatures:
         best = sig.best
@@ -228,7 +228,7 @@ def _verdict(sig: ChannelSignature, level: float) -> str:
     if 0 < sig.above_chance < sig.min_share and sig.explained_rms > sig.noise_rms:
         return (f"a small structure, {100 * sig.above_chance:.1f} % above chance: below the "
                 f"{100 * sig.min_share:.0f} % an effect must explain to be named")
-    return f"nothing this library predicts (residual {level:.1f}× the white-noise estimate)"
+    return f"nothing this library predicts (residual {level:.1f}× the noise floor)"
 
 
 def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
