@@ -418,8 +418,9 @@ class StageScorer:
             # from the catalogue's 2° to 1.26° and −87 %
             starts.append(handbook)
         if _several_basins(spec) and float(np.min(cost)) > self.base_refit()[1]:
-            # the reset levels fit worse than the base at every width: profile them first
-            starts.append(self._profiled_start(starts[0], grid))
+            # the reset levels fit worse than the base at every width, so the grid's pick
+            # says little: profile them first and start from there instead
+            starts[0] = self._profiled_start(starts[0], grid)
         return starts
 
     def _profiled_start(self, start: np.ndarray, grid: list[dict[str, float]]) -> np.ndarray:
