@@ -70,10 +70,36 @@ def run_case(effects: list[str], seed: int, realism: BenchRealism) -> dict:
                                               for c in f.indistinguishable_from))
             if f and f.effect != "unexplained" else None,
             "missed": len(planted - {(x.effect, x.component) for x in result.findings}),
+            # missed where the resolution step states a detection limit above the planted
+            # size: "below what these tests resolve", an honest answer (#30)
+            "below_limit": sum(below_limit(result, e) for e in truth["effects"]
+                               if (e["effect"], e["component"]) not in
+                               {(x.effect, x.component) for x in result.findings}),
             "fell_back": sum(bool(c["fell_back"]) for c in cands), "refits": len(cands),
             "wall_s": round(wall, 1),
         })
     return rows
+
+
+def below_limit(result, planted: dict) -> bool:
+    """Whether the planted size is smaller than the smallest size the resolution step says
+    these tests resolve (or none of its sizes is resolved), on the size parameters it scales."""
+    key = f"{planted['effect']}:{planted['component']}"
+    res = next((r for r in result.resolution if r.key == key), None)
+    if res is None or not res.sizes:
+        return False
+    limit = res.detection_limit()
+    if limit is None:
+        return True
+    model = result.base.model
+    spec = model.effects[key]
+
+    def strength(h: str, v: float) -> float:
+        name = spec.headline[h]
+        neutral = model.spec(name).default
+        return 1.0 / v if name in spec.inverse_size else abs(v - neutral)
+    return all(strength(h, planted["parameters"][h]) < strength(h, limit.values[h])
+               for h in res.size_parameters if h in planted["parameters"])
 
 
 def reliability(df: pd.DataFrame) -> pd.DataFrame:
@@ -115,6 +141,12 @@ def main() -> int:
     print()
     print(f"named right (first catalogue finding): {int(first.right.fillna(False).sum())}/"
           f"{planted.groupby(['case', 'seed']).ngroups}")
+    by_case = planted.groupby(["case", "seed"])
+    no_name = by_case.named.apply(lambda n: not any(x and not x.startswith("unexplained")
+                                                    for x in n))
+    honest = by_case.below_limit.max()
+    print(f"no catalogue finding: {int(no_name.sum())}, of which the planted size is below "
+          f"the detection limit the resolution step states: {int((no_name & honest).sum())}")
     print(f"wrong findings: {int((df.right == False).sum())}, with confidence ≥ 0.9: "  # noqa: E712
           f"{int(((df.right == False) & (df.confidence >= 0.9)).sum())}")  # noqa: E712
     print(f"unexplained findings (the rest the catalogue leaves): "
