@@ -26,6 +26,9 @@ from mbst.io.campaign import read_campaign
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 from mbst.systems.eps.realism import BenchRealism
 
+# the bench's cogging order (periods per motor revolution), as the rig's model holds it
+COGGING_ORDER = BenchRecipe(effects=[]).model().spec("motor.cogging_periods_per_rev").default
+
 # case → (bench realism, the signature that describes it: kind, quantity or quantities
 # that say the same thing, "|"-separated: without backlash the rack's position, the
 # pinion's and the motor's angles are one coordinate)
@@ -33,10 +36,10 @@ CASES = {
     "torque lag 8 ms": (dict(torque_lag_s=0.008), ("lag", "steering_torque_nm")),
     "torque lag 15 ms": (dict(torque_lag_s=0.015), ("lag", "steering_torque_nm")),
     "friction drift 30 %": (dict(friction_drift=0.3), ("drift", "time")),
-    # a ripple is described right at the bench's order too (motor.cogging_periods_per_rev):
-    # "once per revolution" sends an engineer after an eccentricity, not a cogging
-    "cogging 4 mN·m": (dict(cogging_nm=0.004), ("periodic", "motor_angle_rad", 18)),
-    "cogging 20 mN·m": (dict(cogging_nm=0.02), ("periodic", "motor_angle_rad", 18)),
+    # a ripple is described right at the bench's order too: "once per revolution" sends an
+    # engineer after an eccentricity, not a cogging
+    "cogging 4 mN·m": (dict(cogging_nm=0.004), ("periodic", "motor_angle_rad", COGGING_ORDER)),
+    "cogging 20 mN·m": (dict(cogging_nm=0.02), ("periodic", "motor_angle_rad", COGGING_ORDER)),
     "rack ratio 0.2/rad²": (dict(rack_ratio_variation=0.2),
                             ("polynomial", "pinion_angle_rad|steering_angle_rad|rack_position_m|motor_angle_rad")),
     "clean": ({}, None),

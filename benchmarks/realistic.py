@@ -51,6 +51,7 @@ def run_case(effects: list[str], seed: int, realism: BenchRealism) -> dict:
         wall = time.perf_counter() - t0
     planted = {(e["effect"], e["component"]) for e in truth["effects"]}
     cands = [c for r in result.rounds for c in r.get("candidates", []) if "fell_back" in c]
+    found = {(x.effect, x.component) for x in result.findings}
     rows = []
     for f in result.findings or [None]:
         named = (f.effect, f.component) if f else None
@@ -69,12 +70,11 @@ def run_case(effects: list[str], seed: int, realism: BenchRealism) -> dict:
             "right": (named in planted or any((f.effect, c) in planted
                                               for c in f.indistinguishable_from))
             if f and f.effect != "unexplained" else None,
-            "missed": len(planted - {(x.effect, x.component) for x in result.findings}),
+            "missed": len(planted - found),
             # missed where the resolution step states a detection limit above the planted
             # size: "below what these tests resolve", an honest answer (#30)
             "below_limit": sum(below_limit(result, e) for e in truth["effects"]
-                               if (e["effect"], e["component"]) not in
-                               {(x.effect, x.component) for x in result.findings}),
+                               if (e["effect"], e["component"]) not in found),
             "fell_back": sum(bool(c["fell_back"]) for c in cands), "refits": len(cands),
             "wall_s": round(wall, 1),
         })

@@ -220,8 +220,10 @@ def judge_catalogue_names(findings: list[Finding], state: DiscoveryState) -> Non
     ``partly explained``: structure is left beside it (the unexplained finding).
     ``in doubt``: the structure left follows a signature that explains the channel's base
     residual as much as the effect removed, or the extension made the channel's output
-    error larger on its stage (a phase-free match, such as stick-slip's, to an oscillation
-    of another cause); the confidence is capped below ½.
+    error larger on its stage; for a phase-free match (stick-slip's envelope) that is
+    doubt only where the base model's fast residual repeats with the motion
+    (``_locked_fast_part``: an oscillation of another cause, a cogging ripple); the
+    confidence is capped below ½.
     """
     if not state.signatures:
         return
