@@ -14,9 +14,13 @@ import time
 from mbst.discovery import acceptance, extension
 from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
-from mbst.discovery.structure import CandidateScore, StageScorer, structure_test
+from mbst.discovery.structure import CandidateScore, StageScorer, rank_key, structure_test
 
 log = logging.getLogger(__name__)
+
+# At most this many look-alikes of a round's winner are refitted from its stage fit, and it
+# from theirs (``_cross_seeded``): two refits each.
+MAX_CONTENDERS = 3
 
 
 def structure_rounds(state: DiscoveryState) -> None:
@@ -38,12 +42,14 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
                ) -> set[str] | None:
     """One round; the candidates the next round rescores, or ``None`` to stop."""
     scores = _screen(state, rnd, shortlist, bar)
-    for s in scores:
-        if s.fell_back:
-            # the candidate was not fully tested: its refit ended above the base it nests
-            log.warning("round %d: %s refit ended %.3g %% above the base (status %d)%s",
-                        rnd + 1, s.key, 100 * (s.cost_refit / s.cost_base - 1), s.status,
-                        "; its screening showed a gain" if s.grid_gain > 0 else "")
+    _warn_fell_back(rnd, scores)
+    settings = state.settings
+    if scores:
+        scorer = StageScorer(state.model.stage_tests(scores[0].stage, state.ids),
+                             scores[0].stage, state.p, state.scales, state.base.preid["upper"],
+                             settings.identify.decimate, reset=state.compensating(),
+                             free=state.cascade_free.get(scores[0].stage))
+        scores = _cross_seeded(state, scorer, scores)
     rec = {"round": rnd + 1, "candidates": [score_record(s) for s in scores],
            "accepted": None, "reason": ""}
     state.rounds.append(rec)
@@ -53,18 +59,12 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
                          "no candidate can act in the scenarios tested")
         return None
     best = scores[0]
-    settings = state.settings
     drop = _aic_drop(state, best.k_effect)
     rec["aic_drop_needed"] = round(drop, 2)
     short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop)
     if short is not None:
         rec["reason"] = short
         return None
-    reset = state.compensating()
-    scorer = StageScorer(state.model.stage_tests(best.stage, state.ids), best.stage, state.p,
-                         state.scales, state.base.preid["upper"],
-                         settings.identify.decimate, reset=reset,
-                         free=state.cascade_free.get(best.stage))
     cv = acceptance.cross_validate(scorer, best, state.p, settings.cv_nfev)
     if cv["folds"] and cv["wins"] * 2 < cv["folds"]:
         rec["reason"] = (f"{best.key} lost leave-one-test-out cross-validation "
@@ -87,6 +87,45 @@ def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
     return {s.key for s in scores[1:]
             if acceptance.shows_evidence(s, settings.min_relative_gain,
                                          _aic_drop(state, s.k_effect))}
+
+
+def _warn_fell_back(rnd: int, scores: list[CandidateScore]) -> None:
+    for s in scores:
+        if s.fell_back:
+            # the candidate was not fully tested: its refit ended above the base it nests
+            log.warning("round %d: %s refit ended %.3g %% above the base (status %d)%s",
+                        rnd + 1, s.key, 100 * (s.cost_refit / s.cost_base - 1), s.status,
+                        "; its screening showed a gain" if s.grid_gain > 0 else "")
+
+
+def _contenders(state: DiscoveryState, best: CandidateScore, scores: list[CandidateScore]
+                ) -> list[CandidateScore]:
+    """Look-alikes of ``best`` its refits have not settled: in its stage, with evidence,
+    and fitting at least one of the stage's tests better than it does."""
+    return [s for s in scores[1:]
+            if s.stage == best.stage and not s.fell_back
+            and acceptance.shows_evidence(s, state.settings.min_relative_gain,
+                                          _aic_drop(state, s.k_effect))
+            and any(s.per_test_cost[t] < best.per_test_cost[t] for t in s.tests)
+            ][:MAX_CONTENDERS]
+
+
+def _cross_seeded(state: DiscoveryState, scorer: StageScorer, scores: list[CandidateScore]
+                  ) -> list[CandidateScore]:
+    """The round's winner and its contenders each refitted from the other's stage fit
+    (``StageScorer.reseeded``), so that a look-alike does not win by the basin its own
+    starts found for the stage's parameters; best first again."""
+    best = scores[0]
+    rivals = _contenders(state, best, scores)
+    if not rivals:
+        return scores
+    effects = state.model.effects
+    new = {s.key: scorer.reseeded(effects[s.key], s, best) for s in rivals}
+    won = best
+    for r in rivals:
+        won = scorer.reseeded(effects[best.key], won, r)
+    new[best.key] = won
+    return sorted((new.get(s.key, s) for s in scores), key=rank_key)
 
 
 def _aic_drop(state: DiscoveryState, k: int) -> float:
@@ -143,7 +182,7 @@ def score_record(s: CandidateScore) -> dict:
             "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
             "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2),
             "fell_back": s.fell_back, "optimizer_status": s.status,
-            "diverged_evaluations": s.n_diverged}
+            "diverged_evaluations": s.n_diverged, "seeded_from": s.seeded_from}
 
 
 def _progress_bar(enabled: bool):
