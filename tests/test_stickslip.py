@@ -76,6 +76,9 @@ def test_rank_breaks_a_near_tie_by_the_more_typical_size():
     order = rank([a, b, c])
     assert [s.component for s in order] == ["rack", "motor", "steering_column"]
     assert order[0].decided_by == "typical size"
+    # the finding names both: the near tie is the data's answer, the typical size a guess
+    assert order[0].tied_with == ["motor"]
     # outside the tie the misfit decides
     a2, b2 = _score("stribeck_friction:motor", 1.0, 1.4), _score("stribeck_friction:rack", 2.0)
     assert rank([b2, a2])[0].component == "motor" and rank([b2, a2])[0].decided_by == "misfit"
+    assert rank([b2, a2])[0].tied_with == []

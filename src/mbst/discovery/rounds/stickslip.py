@@ -108,6 +108,8 @@ class StickSlipScore:
     typicality: float = 0.0
     at_bound: list[str] = field(default_factory=list)
     decided_by: str = "misfit"
+    # the components of a near tie the winner was named over by its typical size
+    tied_with: list[str] = field(default_factory=list)
     wall_s: float = 0.0
 
     @property
@@ -265,6 +267,9 @@ def rank(scores: list[StickSlipScore]) -> list[StickSlipScore]:
     if first is not by_misfit[0]:
         first.decided_by = "typical size" if first in tied and inside[0] is by_misfit[0] \
             else "range"
+    if first.decided_by == "typical size":
+        first.tied_with = [s.component for s in tied
+                           if s is not first and s.effect == first.effect]
     return ordered
 
 
@@ -335,6 +340,7 @@ def _stick_slip_record(ids: list[PreparedTest], p: np.ndarray, accepted: set[str
         effect=best.effect, component=best.component, parameters=best.headline,
         confidence=confidence, evidence="; ".join(parts), stage=best.stage,
         relative_gain=best.relative_gain, aic_delta=None,
+        indistinguishable_from=list(best.tied_with),
         cv={"folds": len(best.per_test), "wins": best.wins, "criterion": "envelope misfit",
             "per_test": {k: {"misfit_base": b, "misfit": c}
                          for k, (b, c) in best.per_test.items()}},
