@@ -516,6 +516,7 @@ def structure_test(
     progress=None,
     stage_free: dict[str, list[str]] | None = None,
     evidence_gain: float | None = None,
+    scorers: dict[str, StageScorer] | None = None,
 ) -> list[CandidateScore]:
     """Score every catalogue candidate on the stage that isolates its component.
 
@@ -524,11 +525,13 @@ def structure_test(
     Returns the scores sorted by the share of their stage's residual cost they
     remove, best first. (The Akaike difference is not comparable across stages:
     a stage with more effective samples inflates it.) ``stage_free``: what the
-    cascade freed per stage (see ``StageScorer``); ``evidence_gain``: see ``StageScorer``.
+    cascade freed per stage (see ``StageScorer``); ``evidence_gain``: see ``StageScorer``;
+    ``scorers``: filled with the stage scorers used, for the caller to go on with (their
+    base refits are done).
     """
     model = id_tests[0].model
     scenarios = {st for pt in id_tests for st in model.stages_of(pt)}
-    scorers: dict[str, StageScorer] = {}
+    scorers = {} if scorers is None else scorers
     n_eff: dict[str, float] = {}
     specs: dict[str, EffectSpec] = {}
     out = []

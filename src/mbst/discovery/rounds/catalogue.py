@@ -41,14 +41,12 @@ def structure_rounds(state: DiscoveryState) -> None:
 def _one_round(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
                ) -> set[str] | None:
     """One round; the candidates the next round rescores, or ``None`` to stop."""
-    scores = _screen(state, rnd, shortlist, bar)
+    scorers: dict[str, StageScorer] = {}
+    scores = _screen(state, rnd, shortlist, bar, scorers)
     _warn_fell_back(rnd, scores)
     settings = state.settings
-    if scores:
-        scorer = StageScorer(state.model.stage_tests(scores[0].stage, state.ids),
-                             scores[0].stage, state.p, state.scales, state.base.preid["upper"],
-                             settings.identify.decimate, reset=state.compensating(),
-                             free=state.cascade_free.get(scores[0].stage))
+    if scores:  # the winner's stage as the screening scored it (its base refit done)
+        scorer = scorers[scores[0].stage]
         scores = _cross_seeded(state, scorer, scores)
     rec = {"round": rnd + 1, "candidates": [score_record(s) for s in scores],
            "accepted": None, "reason": ""}
@@ -136,9 +134,10 @@ def _aic_drop(state: DiscoveryState, k: int) -> float:
                                       state.settings.min_aic_drop)
 
 
-def _screen(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
-            ) -> list[CandidateScore]:
-    """Every candidate (or the shortlist) refitted in its stage, best first."""
+def _screen(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar,
+            scorers: dict[str, StageScorer]) -> list[CandidateScore]:
+    """Every candidate (or the shortlist) refitted in its stage, best first; ``scorers``
+    gets the stage scorers."""
     settings = state.settings
 
     def tick(phase: str, sc: CandidateScore) -> None:
@@ -153,7 +152,7 @@ def _screen(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar
                           refine=settings.refine, reset=state.compensating(), only=shortlist,
                           progress=tick, stage_free=state.cascade_free,
                           evidence_gain=acceptance.EVIDENCE_SHARE_OF_MARGIN
-                          * settings.min_relative_gain)
+                          * settings.min_relative_gain, scorers=scorers)
 
 
 def _extend(state: DiscoveryState, scorer: StageScorer, best: CandidateScore,
