@@ -82,3 +82,46 @@ def test_rank_breaks_a_near_tie_by_the_more_typical_size():
     a2, b2 = _score("stribeck_friction:motor", 1.0, 1.4), _score("stribeck_friction:rack", 2.0)
     assert rank([b2, a2])[0].component == "motor" and rank([b2, a2])[0].decided_by == "misfit"
     assert rank([b2, a2])[0].tied_with == []
+
+
+def test_a_look_alike_that_fits_with_the_levels_at_typical_values_is_tied():
+    """Motor and rack move as one body; a base fit that put the friction in the motor
+    (rack Coulomb on its bound) leaves a rack Stribeck rise nothing to scale. With the
+    levels back at their typical values the rack candidate fits as well: the finding lists
+    it and the rule that decided is "levels". Where it still fits worse there, no tie."""
+    from mbst.discovery.rounds.stickslip import _level_ties
+    from mbst.systems.eps.model import EPS_MODEL
+
+    idx = EPS_MODEL.param_index
+    rack_c, motor_c = "rack.coulomb_n", "motor.coulomb_nm"
+
+    class Envelope:  # misfit 10 without stick-slip; a Stribeck rise removes it where the
+        # element carries friction (its Coulomb level at least a third of typical)
+        stage = "free_tie_rods"
+        tests = [SimpleNamespace(model=EPS_MODEL, time_s=np.zeros(100), id="t")]
+
+        def misfits(self, ps):
+            out = []
+            for p in ps:
+                m = 10.0
+                for elem, c in (("rack", rack_c), ("motor", motor_c)):
+                    ratio = p[idx[f"{elem}.stribeck_friction.static_to_coulomb_ratio"]]
+                    if ratio > 1.3 and p[idx[c]] >= EPS_MODEL.spec(c).default / 3:
+                        m = min(m, 1.0 + rack_weight * (elem == "rack"))
+                out.append([m])
+            return np.array(out)
+
+    base = np.array(EPS_MODEL.default_vector(), float)
+    base[idx[rack_c]], base[idx[motor_c]] = 1.0, 5 * EPS_MODEL.spec(motor_c).default
+    reset = {rack_c: EPS_MODEL.spec(rack_c).default, motor_c: EPS_MODEL.spec(motor_c).default}
+    env = Envelope()
+    from mbst.discovery.rounds.stickslip import score_candidate
+
+    for rack_weight, tied in ((0.1, True), (5.0, False)):
+        scores = [score_candidate(env, EPS_MODEL.effects[f"stribeck_friction:{e}"], base,
+                                  np.array([10.0])) for e in ("motor", "rack")]
+        ranked = rank(scores)
+        assert ranked[0].component == "motor" and ranked[1].relative_gain == 0.0
+        _level_ties(env, ranked, base, reset, np.array([10.0]))
+        assert (ranked[0].tied_with == ["rack"]) is tied
+        assert ranked[0].decided_by == ("levels" if tied else "misfit")
