@@ -125,3 +125,18 @@ def test_a_look_alike_that_fits_with_the_levels_at_typical_values_is_tied():
         _level_ties(env, ranked, base, reset, np.array([10.0]))
         assert (ranked[0].tied_with == ["rack"]) is tied
         assert ranked[0].decided_by == ("levels" if tied else "misfit")
+
+
+def test_rank_compares_stages_by_the_share_of_their_own_misfit_removed():
+    """Realistic rig 302: a column candidate that removed nothing of a small blocked-column
+    misfit (3.0 → 3.001) left less misfit than a motor one that removed 91 % of the free
+    tie-rods' (312 → 29); ranked by the misfit left, the motor's name came from the range
+    rule and its confidence was halved."""
+    column = StickSlipScore("stribeck_friction:steering_column", "stribeck_friction",
+                            "steering_column", "blocked_column", 3.0, 3.001, np.zeros(1))
+    motor = StickSlipScore("stribeck_friction:motor", "stribeck_friction", "motor",
+                           "free_tie_rods", 312.0, 29.0, np.zeros(1))
+    rack = StickSlipScore("stribeck_friction:rack", "stribeck_friction", "rack",
+                          "free_tie_rods", 312.0, 309.0, np.zeros(1), at_bound=["ratio"])
+    order = rank([column, rack, motor])
+    assert order[0] is motor and order[0].decided_by == "misfit"
