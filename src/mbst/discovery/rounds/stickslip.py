@@ -108,7 +108,8 @@ class StickSlipScore:
     typicality: float = 0.0
     at_bound: list[str] = field(default_factory=list)
     decided_by: str = "misfit"
-    # the components of a near tie the winner was named over by its typical size
+    # the components the winner cannot be told from: a near tie it won by its typical size,
+    # or a look-alike that fits as well with the stage's levels at typical values
     tied_with: list[str] = field(default_factory=list)
     wall_s: float = 0.0
 
@@ -217,9 +218,9 @@ def stick_slip_test(id_tests: list[PreparedTest], base: np.ndarray,
     """Envelope misfit of the base model per stage, and the Stribeck candidates ranked.
 
     Stages whose base misfit is below ``min_base_misfit`` show no stick-slip and
-    are not searched. Candidates are ranked by the misfit they leave; those
-    within ``TIE_FACTOR`` of the best are ordered by how typical their fitted
-    size is for the element (look-alikes that move as one body fit alike).
+    are not searched. Candidates are ranked by the share of their stage's misfit they
+    remove (``rank``); those within ``TIE_FACTOR`` of the best are ordered by how typical
+    their fitted size is for the element (look-alikes that move as one body fit alike).
     ``reset``: the stage parameters a fit without the effect may have moved, at their
     typical values (``DiscoveryState.compensating``; see ``_level_ties``).
     """
