@@ -12,6 +12,7 @@ import pytest
 from mbst.cli import main
 from mbst.identify.cascade import IdentifySettings, correlate, identify
 from mbst.identify.fitting import channel_scales, hac_meat, residual_memory
+from mbst.identify.record import base_from_record
 from mbst.io.campaign import CampaignError, read_campaign
 from mbst.report.plots import motion_reversals
 from mbst.systems.eps.bench import BenchRecipe, PlannedTest, run_bench
@@ -179,6 +180,32 @@ def test_cli_identify_writes_params_and_correlation(tmp_path):
     leftovers = [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
     assert not leftovers
     shutil.rmtree(out)
+
+
+def test_base_fit_record_rebuilds_discoverys_own_cascade_and_only_for_its_campaign(tmp_path):
+    """The identify step's cascade is what discovery would fit itself (bitwise), and a
+    record of other data or other settings is refused with the reason."""
+    camp_dir = _small_blocked_column(tmp_path)
+    out = tmp_path / "out"
+    assert main(["identify", str(camp_dir), "--out", str(out), "--quiet"]) == 0
+    record = json.loads((out / "base_fit.json").read_text())
+    camp = read_campaign(camp_dir)
+    own = identify(camp, IdentifySettings(), controls=False, check_known=False)
+    rebuilt = base_from_record(camp, IdentifySettings(), record)
+    assert rebuilt.result is not None, rebuilt.reason
+    assert np.array_equal(rebuilt.result.params, own.params)
+    assert [st.free for st in rebuilt.result.stages] == [st.free for st in own.stages]
+    assert rebuilt.result.preid["upper"] == own.preid["upper"]
+    for tid, tw in own.twins.items():
+        for ch, y in tw.items():
+            assert np.array_equal(rebuilt.result.twins[tid][ch], y), (tid, ch)
+    assert "settings" in base_from_record(camp, IdentifySettings(seed=1), record).reason
+    f = camp_dir / "tests" / "a.csv"
+    df = pd.read_csv(f)
+    df.loc[10, "steering_torque_nm"] += 0.01
+    df.to_csv(f, index=False)
+    assert "campaign data" in base_from_record(read_campaign(camp_dir), IdentifySettings(),
+                                               record).reason
 
 
 def test_rate_noise_and_standstill_are_read_from_the_angle():

@@ -7,6 +7,7 @@ bad input into one line on stderr and exit status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -130,10 +131,19 @@ def _cmd_discover(args: argparse.Namespace) -> int:
         stick_slip=not args.no_stick_slip, equation_error=not args.no_equation_error,
         progress=not args.quiet,
     )
-    result = run_discover(camp, args.out, settings)
+    result = run_discover(camp, args.out, settings, _read_base_fit(args.base_fit))
     if not args.quiet:
         print(result.summary())
     return 0
+
+
+def _read_base_fit(path: str | None) -> dict | None:
+    if path is None:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"--base-fit {path}: cannot be read as JSON ({exc})") from None
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
@@ -335,6 +345,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ΔAIC an effect must reach, as −value (default: from the campaign, "
                    "the likelihood-ratio test with its effective samples at a 1 %% "
                    "false-alarm rate over the catalogue)")
+    p.add_argument("--base-fit", metavar="BASE_FIT_JSON", default=None,
+                   help="start from the base cascade `mbst identify` wrote (its "
+                   "base_fit.json) instead of fitting it again; used only where it was made "
+                   "from this campaign's data with these settings by this code")
     p.add_argument("--no-sparse", action="store_true", help="skip the sparse regression")
     p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
     p.add_argument("--no-stick-slip", action="store_true",

@@ -5,13 +5,16 @@
 # came from the virtual bench).
 #
 # Same atomic pattern as identify.smk: write into discover.tmp, rename when done.
-# `mbst discover` runs its own base identification with the same settings as the
-# identify rule (deterministic: the same fit), so the two rules can run in parallel.
+# Discovery starts from the identify rule's cascade (`--base-fit`, its base_fit.json)
+# instead of fitting the same deterministic cascade again; `mbst discover` checks that
+# the record was made from this campaign's data with these settings by this code, and
+# fits the cascade itself where it was not.
 
 
 rule discover:
     input:
-        campaign_inputs,
+        campaign=campaign_inputs,
+        base_fit="results/{campaign}/identify/base_fit.json",
     output:
         discovery="results/{campaign}/discover/discovery.json",
         comparison=report(
@@ -65,6 +68,7 @@ rule discover:
         " mbst discover {params.campaign_dir:q} --out {params.tmpdir:q} --quiet"
         " --tau {params.tau_s} --seed {params.seed} --multistart {params.multistart} {params.joint}"
         " --max-effects {params.max_effects} --min-gain {params.min_gain}"
+        " --base-fit {input.base_fit:q}"
         " {params.aic_margin} {params.skip}"
         " > {log:q} 2>&1"
         " && rm -rf {params.outdir:q}"

@@ -18,6 +18,8 @@ rule identify:
         campaign_inputs,
     output:
         params="results/{campaign}/identify/params.json",
+        # the cascade as a record: the discover rule starts from it (no second fit)
+        base_fit="results/{campaign}/identify/base_fit.json",
         correlation=report(
             "results/{campaign}/identify/correlation.csv",
             caption="../report/correlation.rst",

@@ -47,6 +47,7 @@ from mbst.discovery.rounds.unexplained import (
 )
 from mbst.discovery.state import DiscoverSettings, DiscoveryState, Finding, total_cost
 from mbst.identify.cascade import IdentifyResult, identify
+from mbst.identify.record import base_from_record
 from mbst.io.campaign import Campaign
 
 log = logging.getLogger(__name__)
@@ -133,13 +134,18 @@ class DiscoveryResult:
         return "\n".join(lines)
 
 
-def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> DiscoveryResult:
-    """Find, name and insert the effects the base model lacks; compare model families."""
+def discover(campaign: Campaign, settings: DiscoverSettings | None = None,
+             base_fit: dict | None = None) -> DiscoveryResult:
+    """Find, name and insert the effects the base model lacks; compare model families.
+
+    ``base_fit``: the base cascade as ``mbst identify`` recorded it (``base_fit.json``),
+    used where it was made from this campaign's data with these settings by this code;
+    otherwise (or ``None``) discovery fits the cascade itself.
+    """
     settings = settings or DiscoverSettings()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    # the fixed known values are checked by `mbst identify`; discovery keeps its minutes
-    base = identify(campaign, settings.identify, controls=False, check_known=False)
+    base = _base_model(campaign, settings, base_fit)
     timings["identify_s"] = time.perf_counter() - t_start
     id_res = [residual_data(base.prepared[s.id], base.params, base.twins.get(s.id))
               for s in campaign.identification_tests()]
@@ -165,6 +171,19 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None) -> Di
     finally:
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _base_model(campaign: Campaign, settings: DiscoverSettings, base_fit: dict | None
+                ) -> IdentifyResult:
+    """The identify step's cascade where its record fits, else the same cascade fitted."""
+    if base_fit is not None:
+        rebuilt = base_from_record(campaign, settings.identify, base_fit)
+        if rebuilt.result is not None:
+            log.info("base model: the identify step's cascade (base_fit record)")
+            return rebuilt.result
+        log.warning("base-fit record not used (%s): fitting the cascade", rebuilt.reason)
+    # the fixed known values are checked by `mbst identify`; discovery keeps its minutes
+    return identify(campaign, settings.identify, controls=False, check_known=False)
 
 
 def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future | None,

@@ -134,6 +134,19 @@ def _flatline_channels(pt: PreparedTest) -> list[str]:
     return bad
 
 
+def prepare_campaign(campaign: Campaign, tau_s: float
+                     ) -> tuple[dict[str, PreparedTest], list[str]]:
+    """Every test filtered and its model input derived; flat-lined channels left out
+    (with a warning each), as the cascade fits them."""
+    warnings = []
+    prepared = {s.id: prepare_test(campaign, s, tau_s) for s in campaign.tests}
+    for pt in prepared.values():
+        for ch in _flatline_channels(pt):
+            warnings.append(f"test '{pt.id}': channel '{ch}' is flat-lined; it is not used")
+            pt.measured.pop(ch, None)
+    return prepared, warnings
+
+
 def stage_channels(pt: PreparedTest) -> list[str]:
     return [ch for ch in pt.measured]
 
@@ -152,16 +165,11 @@ def run_cascade(
     restricts the fit to these parameters (and the sensor offsets), the rest
     staying at ``base``: the planner's proof identifies just a plan's unknowns.
     """
-    warnings: list[str] = []
     id_specs = campaign.identification_tests()
     if not id_specs:
         raise CampaignError("no test has role 'identification': nothing to fit",
                             campaign=campaign.name)
-    prepared = {s.id: prepare_test(campaign, s, settings.tau_s) for s in campaign.tests}
-    for pt in prepared.values():
-        for ch in _flatline_channels(pt):
-            warnings.append(f"test '{pt.id}': channel '{ch}' is flat-lined; it is not used")
-            pt.measured.pop(ch, None)
+    prepared, warnings = prepare_campaign(campaign, settings.tau_s)
     id_tests = [prepared[s.id] for s in id_specs]
     scales = channel_scales(id_tests)
 

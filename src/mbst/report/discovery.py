@@ -393,9 +393,11 @@ def _hybrid_lines(hybrid: dict | None) -> list[str]:
 
 
 def run_discover(campaign: Campaign, out_dir: str | Path,
-                 settings: DiscoverSettings | None = None) -> DiscoveryResult:
-    """``mbst discover``: everything into ``out_dir``, atomically."""
-    result = discover(campaign, settings)
+                 settings: DiscoverSettings | None = None, base_fit: dict | None = None
+                 ) -> DiscoveryResult:
+    """``mbst discover``: everything into ``out_dir``, atomically (``base_fit``: the
+    record ``mbst identify`` wrote, see ``discover``)."""
+    result = discover(campaign, settings, base_fit)
     with atomic_output_dir(out_dir) as tmp:
         write_discover_outputs(result, tmp)
     return result

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from mbst.identify.cascade import HELD_STAGE, IdentifyResult, IdentifySettings, identify
+from mbst.identify.record import fit_record
 from mbst.io.campaign import Campaign
 from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.report import plots
@@ -68,8 +69,13 @@ def params_record(result: IdentifyResult, settings: IdentifySettings) -> dict:
     }
 
 
-def write_identify_outputs(result: IdentifyResult, out: Path, settings: IdentifySettings) -> None:
+def write_identify_outputs(result: IdentifyResult, out: Path, settings: IdentifySettings,
+                           campaign: Campaign | None = None) -> None:
+    """Everything ``mbst identify`` writes; with ``campaign`` also ``base_fit.json``, the
+    cascade ``mbst discover --base-fit`` starts from instead of fitting it again."""
     write_json(out / "params.json", params_record(result, settings))
+    if campaign is not None:
+        write_json(out / "base_fit.json", fit_record(result, settings, campaign))
     result.correlation.to_csv(out / "correlation.csv", index=False, float_format="%.6g")
     result.identification_fit.to_csv(out / "identification_fit.csv", index=False,
                                      float_format="%.6g")
@@ -132,5 +138,5 @@ def run_identify(campaign: Campaign, out_dir: str | Path,
     settings = settings or IdentifySettings()
     result = identify(campaign, settings)
     with atomic_output_dir(out_dir) as tmp:
-        write_identify_outputs(result, tmp, settings)
+        write_identify_outputs(result, tmp, settings, campaign)
     return result
