@@ -20,6 +20,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -517,6 +518,7 @@ def structure_test(
     stage_free: dict[str, list[str]] | None = None,
     evidence_gain: float | None = None,
     scorers: dict[str, StageScorer] | None = None,
+    scorer_for: Callable[[str], StageScorer] | None = None,
 ) -> list[CandidateScore]:
     """Score every catalogue candidate on the stage that isolates its component.
 
@@ -527,7 +529,8 @@ def structure_test(
     a stage with more effective samples inflates it.) ``stage_free``: what the
     cascade freed per stage (see ``StageScorer``); ``evidence_gain``: see ``StageScorer``;
     ``scorers``: filled with the stage scorers used, for the caller to go on with (their
-    base refits are done).
+    base refits are done); a scorer already in it is used as it is. ``scorer_for``: builds
+    a stage's scorer instead of the arguments above (the rounds' own, ``catalogue``).
     """
     model = id_tests[0].model
     scenarios = {st for pt in id_tests for st in model.stages_of(pt)}
@@ -542,10 +545,11 @@ def structure_test(
         if stage is None:
             continue
         if stage not in scorers:
-            scorers[stage] = StageScorer(model.stage_tests(stage, id_tests), stage,
-                                         base, scales, upper, decimate, refine_nfev,
-                                         reset=reset, free=(stage_free or {}).get(stage),
-                                         evidence_gain=evidence_gain)
+            scorers[stage] = scorer_for(stage) if scorer_for is not None else StageScorer(
+                model.stage_tests(stage, id_tests), stage, base, scales, upper, decimate,
+                refine_nfev, reset=reset, free=(stage_free or {}).get(stage),
+                evidence_gain=evidence_gain)
+        if stage not in n_eff:
             n_eff[stage] = scorers[stage].residual_n_eff(scorers[stage].base_refit()[0])
         specs[spec.key] = spec
         sc = scorers[stage].score(spec, n_eff[stage], max_nfev=screen_nfev)

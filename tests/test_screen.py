@@ -1,0 +1,79 @@
+"""The linearised screen that picks what a later structure round rescores (rounds/screen.py).
+
+An effect masked by a larger one shows only once that one is in; the screen must see it
+against the model as it stands, and see nothing on a campaign that lacks it.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from mbst.discovery.acceptance import EVIDENCE_SHARE_OF_MARGIN
+from mbst.discovery.rounds import catalogue
+from mbst.discovery.rounds.screen import ScreenScore, screen_stage
+from mbst.discovery.state import DiscoverSettings
+from mbst.discovery.structure import CandidateScore, StageScorer
+from mbst.identify.fitting import channel_scales, prepare_test
+from mbst.io.campaign import read_campaign
+from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
+from mbst.systems.eps.model import EPS_MODEL
+
+STAGE = "free_tie_rods"
+EVIDENCE = EVIDENCE_SHARE_OF_MARGIN * 0.10
+
+
+def _stage(tmp_path, effects: list[str]) -> tuple[StageScorer, list]:
+    """The compact plan's free tie-rods stage at the true rig with ``effects`` off: the
+    base model a fit would start from, refitted as a round's base."""
+    recipe = BenchRecipe(effects=effects, seed=3, plan=compact_plan())
+    camp = read_campaign(run_bench(tmp_path, recipe))
+    tests = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()
+             if s.scenario == STAGE]
+    p = recipe.true_params()
+    for key in effects:
+        for n in EPS_MODEL.effects[key].free:
+            p[EPS_MODEL.param_index[n]] = EPS_MODEL.spec(n).default
+    scorer = StageScorer(tests, STAGE, p, channel_scales(tests))
+    specs = [s for s in EPS_MODEL.catalogue if s.component in ("rack", "motor", "worm_gear")
+             and s.key != "stribeck_friction:motor"]
+    return scorer, screen_stage(scorer, specs, scorer.base_refit()[0])
+
+
+@pytest.mark.parametrize("effects", [["asymmetric_friction:rack"],
+                                     ["position_dependent_friction:rack"]])
+def test_the_screen_sees_an_effect_the_model_lacks(tmp_path, effects):
+    scorer, screened = _stage(tmp_path, effects)
+    gain = {s.key: s.predicted_gain for s in screened}
+    planted = effects[0]
+    assert gain[planted] > 0.3, gain
+    # the motor is one body with the rack here: its asymmetry is the rack's look-alike
+    others = {k: g for k, g in gain.items() if k.split(":")[0] != planted.split(":")[0]}
+    assert max(others.values()) < gain[planted] / 2, gain
+
+
+def test_the_screen_sees_nothing_on_a_rig_without_an_effect(tmp_path):
+    _, screened = _stage(tmp_path, [])
+    assert max(s.predicted_gain for s in screened) < EVIDENCE, screened
+
+
+def test_the_next_round_rescores_what_the_screen_passes_not_what_showed_evidence(monkeypatch):
+    """The old rule rescored only what showed evidence in the round before; a masked effect
+    never had. The screen's verdict decides both ways."""
+    def score(key: str, gain: float) -> CandidateScore:
+        effect, component = key.split(":")
+        return CandidateScore(key, effect, component, STAGE, [], [], 1, 1.0, 1.0 - gain,
+                              1000.0, -50.0, params=None)
+
+    last = [score("backlash:worm_gear", 0.9), score("presliding_hysteresis:motor", 0.6)]
+    verdict = [ScreenScore("position_dependent_friction:rack", STAGE, 0.4, {}),
+               ScreenScore("presliding_hysteresis:motor", STAGE, 0.001, {}),
+               ScreenScore("asymmetric_friction:rack", STAGE, EVIDENCE * 0.9, {})]
+    monkeypatch.setattr(catalogue, "screen", lambda state, scores, make, scorers: verdict)
+
+    state = SimpleNamespace(settings=DiscoverSettings(), failures=[])
+    rec = {"round": 1}
+    nxt = catalogue._next_candidates(state, last, rec)
+    assert nxt.shortlist == {"position_dependent_friction:rack"}
+    assert rec["screen"]["predicted_gain"]["presliding_hysteresis:motor"] == 0.001
