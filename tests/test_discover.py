@@ -567,7 +567,10 @@ def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
 
     dahl = cand("presliding_hysteresis:motor", "free_tie_rods", 0.451, {"a": 0.2, "b": 0.3})
     gap = cand("backlash:worm_gear", "free_tie_rods", 0.425, {"a": 0.1, "b": 0.475})
-    beaten = cand("presliding_hysteresis:rack", "free_tie_rods", 0.406, {"a": 0.25, "b": 0.34})
+    # the same effect in a part one body with the motor: a contender though beaten on every
+    # test (its refit may have ended in another basin); another effect so beaten is not
+    twin = cand("presliding_hysteresis:rack", "free_tie_rods", 0.406, {"a": 0.25, "b": 0.34})
+    beaten = cand("asymmetric_friction:rack", "free_tie_rods", 0.40, {"a": 0.25, "b": 0.34})
     other = cand("backlash:rack_pinion", "tires_on_ground", 0.40, {"c": 0.1})
     calls = []
 
@@ -580,9 +583,10 @@ def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
     state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL)
     monkeypatch.setattr(catalogue_mod, "_aic_drop", lambda state, k: 10.0)
     out = catalogue_mod._cross_seeded(state, SimpleNamespace(reseeded=reseeded),
-                                      [dahl, gap, beaten, other])
-    assert sorted(calls) == [(gap.key, dahl.key), (dahl.key, gap.key)]
-    assert [c.key for c in out] == [gap.key, dahl.key, beaten.key, other.key]
+                                      [dahl, gap, twin, beaten, other])
+    assert sorted(calls) == sorted([(gap.key, dahl.key), (dahl.key, gap.key),
+                                    (twin.key, dahl.key), (dahl.key, twin.key)])
+    assert [c.key for c in out] == [gap.key, dahl.key, twin.key, beaten.key, other.key]
     assert out[0].seeded_from == dahl.key and out[0].relative_gain == pytest.approx(0.503)
 
 
@@ -623,3 +627,18 @@ def test_a_reseeded_refit_starts_from_the_rivals_stage_fit_with_its_effect_off(m
     # a refit that ends worse keeps the candidate as it was
     fake.score = lambda spec, n_eff, start: dataclasses.replace(start, cost=0.7)
     assert StageScorer.reseeded(fake, gap, cand, rival) is cand
+    # the same effect in another part starts at the rival's dimensionless size (a rack
+    # asymmetry that ended on its bound, refitted from the motor's), a dimensional one
+    # (a Stribeck velocity in m/s against rad/s) at its own
+    fake.score = score
+    for effect, name, own, theirs, expected in (
+            ("asymmetric_friction", "ratio", 4.0, 1.26, 1.26),
+            ("stribeck_friction", "stribeck_velocity", 0.002, 0.5, 0.002)):
+        mine, other = EPS_MODEL.effects[f"{effect}:rack"], EPS_MODEL.effects[f"{effect}:motor"]
+        cand_p, rival_p = base.copy(), base.copy()
+        cand_p[idx[mine.headline[name]]] = own
+        rival_p[idx[other.headline[name]]] = theirs
+        seen.clear()
+        StageScorer.reseeded(fake, mine, dataclasses.replace(cand, key=mine.key, params=cand_p),
+                             dataclasses.replace(rival, key=other.key, params=rival_p))
+        assert seen[0][idx[mine.headline[name]]] == expected, effect

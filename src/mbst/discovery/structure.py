@@ -418,8 +418,15 @@ class StageScorer:
         off = self.neutral_start(self.base, rival_spec)
         for n in rival_spec.free:
             start[self.model.param_index[n]] = off[self.model.param_index[n]]
-        for n in spec.free:
-            start[self.model.param_index[n]] = cand.params[self.model.param_index[n]]
+        idx = self.model.param_index
+        for h, n in spec.headline.items():
+            start[idx[n]] = cand.params[idx[n]]
+            theirs = rival_spec.headline.get(h) if rival_spec.effect == spec.effect else None
+            if theirs is not None and self.model.spec(n).unit == "-":
+                # the same effect in a part that moves with the rival's: its dimensionless
+                # size carries over (a rack asymmetry refitted to its bound, 4.0, where the
+                # motor's, one body with the rack, fitted 1.26)
+                start[idx[n]] = rival.params[idx[theirs]]
         new = self.score(spec, cand.n_eff, start=replace(cand, params=start))
         return replace(new, seeded_from=rival.key) if new.cost < cand.cost else cand
 

@@ -151,12 +151,16 @@ def _warn_fell_back(rnd: int, scores: list[CandidateScore]) -> None:
 def _contenders(state: DiscoveryState, best: CandidateScore, scores: list[CandidateScore]
                 ) -> list[CandidateScore]:
     """Look-alikes of ``best`` its refits have not settled: in its stage, with evidence,
-    and fitting at least one of the stage's tests better than it does."""
+    and fitting at least one of the stage's tests better than it does, or the same effect
+    in another part (one body with it, it fits alike once it starts alike: realistic rig
+    122's rack asymmetry refitted to its bound and 46 % of the stage beside the motor's
+    50 %)."""
     return [s for s in scores[1:]
             if s.stage == best.stage and not s.fell_back
             and acceptance.shows_evidence(s, state.settings.min_relative_gain,
                                           _aic_drop(state, s.k_effect))
-            and any(s.per_test_cost[t] < best.per_test_cost[t] for t in s.tests)
+            and (s.effect == best.effect
+                 or any(s.per_test_cost[t] < best.per_test_cost[t] for t in s.tests))
             ][:MAX_CONTENDERS]
 
 
