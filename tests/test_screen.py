@@ -41,8 +41,9 @@ def _stage(tmp_path, effects: list[str]) -> tuple[StageScorer, list]:
     return scorer, screen_stage(scorer, specs, scorer.base_refit()[0])
 
 
-@pytest.mark.parametrize("effects", [["asymmetric_friction:rack"],
-                                     ["position_dependent_friction:rack"]])
+@pytest.mark.parametrize("effects", [
+    ["asymmetric_friction:rack"],
+    pytest.param(["position_dependent_friction:rack"], marks=pytest.mark.slow)])
 def test_the_screen_sees_an_effect_the_model_lacks(tmp_path, effects):
     scorer, screened = _stage(tmp_path, effects)
     gain = {s.key: s.predicted_gain for s in screened}
