@@ -571,6 +571,10 @@ def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
     # test (its refit may have ended in another basin); another effect so beaten is not
     twin = cand("presliding_hysteresis:rack", "free_tie_rods", 0.406, {"a": 0.25, "b": 0.34})
     beaten = cand("asymmetric_friction:rack", "free_tie_rods", 0.40, {"a": 0.25, "b": 0.34})
+    # the same effect in a part with a motion of its own, beaten on every test, is not
+    # (the demo's rack-pinion backlash beside the worm gear's)
+    apart = cand("presliding_hysteresis:steering_column", "free_tie_rods", 0.40,
+                 {"a": 0.25, "b": 0.34})
     other = cand("backlash:rack_pinion", "tires_on_ground", 0.40, {"c": 0.1})
     calls = []
 
@@ -580,13 +584,17 @@ def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
             return dataclasses.replace(c, cost=1.0 - 0.503, seeded_from=rival.key)
         return c
 
-    state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL)
+    state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL, residuals=[])
     monkeypatch.setattr(catalogue_mod, "_aic_drop", lambda state, k: 10.0)
+    monkeypatch.setattr(catalogue_mod.acceptance, "moves_with",
+                        lambda best, comp, res, model: {best.component, comp} ==
+                        {"motor", "rack"})
     out = catalogue_mod._cross_seeded(state, SimpleNamespace(reseeded=reseeded),
-                                      [dahl, gap, twin, beaten, other])
+                                      [dahl, gap, twin, beaten, apart, other])
     assert sorted(calls) == sorted([(gap.key, dahl.key), (dahl.key, gap.key),
                                     (twin.key, dahl.key), (dahl.key, twin.key)])
-    assert [c.key for c in out] == [gap.key, dahl.key, twin.key, beaten.key, other.key]
+    assert [c.key for c in out] == [gap.key, dahl.key, twin.key, beaten.key, apart.key,
+                                    other.key]
     assert out[0].seeded_from == dahl.key and out[0].relative_gain == pytest.approx(0.503)
 
 

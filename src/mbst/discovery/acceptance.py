@@ -174,22 +174,36 @@ def tied_components(best: CandidateScore, scores: list[CandidateScore],
     term at the pinion, and which of the two wins is then down to noise.
     Returns ``(candidate, speed correlation)`` pairs.
     """
-    speeds = model.element_speeds
-    tests = [residuals[t] for t in best.tests if t in residuals]
-    if best.component not in speeds or not tests:
-        return []
-    mine = np.concatenate([r.states[speeds[best.component]] for r in tests])
     out = []
     for s in scores:
         if s is best or s.stage != best.stage or s.effect != best.effect or \
-                s.component not in speeds or s.cost - best.cost > TIE_GAIN * best.cost_base:
+                s.cost - best.cost > TIE_GAIN * best.cost_base:
             continue
-        theirs = np.concatenate([r.states[speeds[s.component]] for r in tests])
-        corr = float(np.corrcoef(mine, theirs)[0, 1]) if np.std(mine) * np.std(theirs) > 0 \
-            else 0.0
+        corr = speed_correlation(best, s.component, residuals, model)
         if abs(corr) >= TIE_SPEED_CORRELATION:
             out.append((s, corr))
     return out
+
+
+def moves_with(best: CandidateScore, component: str, residuals: dict[str, TestResidual],
+               model: ModelDefinition) -> bool:
+    """Whether ``component`` moves as one body with ``best``'s in every test of its stage
+    (motor and rack through a stiff mesh; not two gaps, which have no speed of their own)."""
+    return abs(speed_correlation(best, component, residuals, model)) >= TIE_SPEED_CORRELATION
+
+
+def speed_correlation(best: CandidateScore, component: str,
+                      residuals: dict[str, TestResidual], model: ModelDefinition) -> float:
+    """Correlation of ``component``'s speed with ``best``'s over the tests of its stage
+    (base model); 0 where either has no element speed."""
+    speeds = model.element_speeds
+    tests = [residuals[t] for t in best.tests if t in residuals]
+    if best.component not in speeds or component not in speeds or not tests:
+        return 0.0
+    mine = np.concatenate([r.states[speeds[best.component]] for r in tests])
+    theirs = np.concatenate([r.states[speeds[component]] for r in tests])
+    return float(np.corrcoef(mine, theirs)[0, 1]) if np.std(mine) * np.std(theirs) > 0 \
+        else 0.0
 
 
 def cross_validate(scorer: StageScorer, cand: CandidateScore, p_base: np.ndarray,
