@@ -171,18 +171,46 @@ def tied_components(best: CandidateScore, scores: list[CandidateScore],
     A runner-up counts when its component's speed follows ``best``'s in every
     test of the stage (``model.element_speeds``, base model) and it leaves almost
     the same cost: motor and rack friction seen through a rigid mesh are one
-    term at the pinion, and which of the two wins is then down to noise.
+    term at the pinion, and which of the two wins is then down to noise. Or when its
+    refit ended with a size on the end of its range: its cost is then only a bound on
+    what it would reach, and how far it got says how the base fit split the stage's
+    levels between the two, which the stage cannot tell (realistic rig 122: a rack
+    asymmetry of 1.35 was fitted as 1.26 in the motor, 50.3 % of the stage, and as 3.99
+    of 4 in the rack, 46.2 %, beside a rack Coulomb level the base fit had moved into
+    the motor).
     Returns ``(candidate, speed correlation)`` pairs.
     """
     out = []
     for s in scores:
         if s is best or s.stage != best.stage or s.effect != best.effect or \
-                s.cost - best.cost > TIE_GAIN * best.cost_base:
+                (s.cost - best.cost > TIE_GAIN * best.cost_base
+                 and not size_on_bound(s, model)):
             continue
         corr = speed_correlation(best, s.component, residuals, model)
         if abs(corr) >= TIE_SPEED_CORRELATION:
             out.append((s, corr))
     return out
+
+
+def size_on_bound(score: CandidateScore, model: ModelDefinition) -> bool:
+    """Whether the refit left one of the effect's own parameters on an end of its search
+    range that is not its neutral value (a size the range cut short, not one the data
+    chose)."""
+    spec = model.effects.get(score.key)
+    if spec is None or score.params is None or len(score.params) != len(model.param_index):
+        return False
+    for n in spec.free:
+        ps = model.spec(n)
+        lo, hi = model.search_lower.get(n, ps.lower), ps.upper
+        # an inverse size (a presliding stiffness) is neutral at its stiff end
+        neutral = hi if n in spec.inverse_size else ps.default
+        v = float(score.params[model.param_index[n]])
+        # within 1 % of the bound (relative: some ranges span six decades; a bounded
+        # least-squares step stays inside, the rig-122 rack ratio ended at 3.986 of 4)
+        if (v >= hi - 1e-2 * abs(hi) and hi != neutral) or \
+                (v <= lo + 1e-2 * abs(lo) and lo != neutral):
+            return True
+    return False
 
 
 def moves_with(best: CandidateScore, component: str, residuals: dict[str, TestResidual],
