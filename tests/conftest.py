@@ -25,24 +25,11 @@ SHARED_WORKER = {"test_identify.py": "demo-identified", "test_neural.py": "demo-
                  "test_sindy.py": "demo-identified"}
 
 
-# The groups that take longest, in seconds on one of two workers (pytest -v and
-# --junitxml, 2026-11-26). xdist hands groups out in collection order
-# (``--no-loadscope-reorder``, pyproject.toml: its own order counts tests, not time), so
-# the longest go first and the short ones fill in behind: the two workers' sums were 445
-# and 342 s in the order of the test count.
-GROUP_SECONDS = {"test_discover.py": 187, "demo-identified": 163, "test_hidden_effects.py": 113,
-                 "test_prismatic.py": 104, "test_assist.py": 58, "test_plan.py": 48,
-                 "test_priors.py": 32}
-
-
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    def group(item: pytest.Item) -> str:
-        return SHARED_WORKER.get(item.path.name, item.path.name)
-
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(group(item)))
-    items.sort(key=lambda item: -GROUP_SECONDS.get(group(item), 0))  # stable: else as found
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group(SHARED_WORKER.get(name, name)))
 
 
 def _bench(tmp_path_factory: pytest.TempPathFactory, name: str, recipe: BenchRecipe) -> Path:
