@@ -663,3 +663,30 @@ def test_a_reseeded_refit_starts_from_the_rivals_stage_fit_with_its_effect_off(m
         StageScorer.reseeded(fake, mine, dataclasses.replace(cand, key=mine.key, params=cand_p),
                              dataclasses.replace(rival, key=other.key, params=rival_p))
         assert seen[0][idx[mine.headline[name]]] == expected, effect
+
+
+def test_comparison_bars_draw_a_slot_per_measured_channel_only(monkeypatch, tmp_path):
+    """A control test without a channel (free tie rods: no tie-rod force) has no slot in
+    the FIT bars, and a family missing on a channel leaves its bar out, not the figure."""
+    from types import SimpleNamespace
+
+    from mbst.report import discovery_figures
+
+    rows = [("free", "steering_torque_nm", "base", 86.0), ("free", "steering_torque_nm",
+                                                            "extended", 98.0),
+            ("loaded", "steering_torque_nm", "base", 99.0),
+            ("loaded", "steering_torque_nm", "extended", 99.5),
+            ("loaded", "tie_rod_force_left_n", "base", 99.1),
+            ("loaded", "tie_rod_force_left_n", "extended", 99.6),
+            ("loaded", "tie_rod_force_left_n", "sindy", 63.0)]
+    result = SimpleNamespace(comparison=pd.DataFrame(
+        rows, columns=["test", "channel", "model", "fit_percent"]))
+    drawn = []
+    monkeypatch.setattr(discovery_figures.plots, "save_figure",
+                        lambda fig, path: drawn.append(fig))
+    discovery_figures.comparison_bars(result, tmp_path / "comparison.png")
+    ticks = [t.get_text() for t in drawn[0].axes[0].get_xticklabels()]
+    assert ticks == ["free\nsteering_torque_nm", "loaded\nsteering_torque_nm",
+                     "loaded\ntie_rod_force_left_n"]
+    legend = [t.get_text() for t in drawn[0].axes[0].get_legend().get_texts()]
+    assert legend == ["base", "extended", "sindy"]

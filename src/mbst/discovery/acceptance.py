@@ -197,7 +197,7 @@ def size_on_bound(score: CandidateScore, model: ModelDefinition) -> bool:
     range that is not its neutral value (a size the range cut short, not one the data
     chose)."""
     spec = model.effects.get(score.key)
-    if spec is None or score.params is None or len(score.params) != len(model.param_index):
+    if spec is None or score.params is None:
         return False
     for n in spec.free:
         ps = model.spec(n)

@@ -419,8 +419,9 @@ class StageScorer:
         for n in rival_spec.free:
             start[self.model.param_index[n]] = off[self.model.param_index[n]]
         idx = self.model.param_index
-        for h, n in spec.headline.items():
+        for n in spec.free:
             start[idx[n]] = cand.params[idx[n]]
+        for h, n in spec.headline.items():
             theirs = rival_spec.headline.get(h) if rival_spec.effect == spec.effect else None
             if theirs is not None and self.model.spec(n).unit == "-":
                 # the same effect in a part that moves with the rival's: its dimensionless

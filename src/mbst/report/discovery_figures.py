@@ -154,9 +154,12 @@ def comparison_bars(result, path: Path) -> None:
     df = result.comparison
     if df.empty:
         return
-    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent",
-                          sort=False, dropna=False)
     models = list(dict.fromkeys(df.model))
+    # dropna=False keeps a family with no FIT on some channel (a missing row once raised
+    # KeyError) but also makes every test x channel pair: a test without a channel (no
+    # tie-rod force where the tie rods are free) would stand as an empty slot
+    wide = df.pivot_table(index=["test", "channel"], columns="model", values="fit_percent",
+                          sort=False, dropna=False).dropna(how="all").reindex(columns=models)
     fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 4.2))
     x = np.arange(len(wide))
     w = 0.8 / len(models)
