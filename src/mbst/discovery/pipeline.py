@@ -243,7 +243,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         resolution=state.resolution, failures=failures, signatures=state.signatures,
         places=places, extended_residuals=state.extended_residuals,
         stages={"campaign_path": str(Path(state.campaign.path).resolve()),
-                "stage_free": state.cascade_free, "compensating": state.compensating(),
+                "stage_free": state.model_free_by_stage, "compensating": state.compensating(),
                 "tau_s": settings.identify.tau_s, "decimate": settings.identify.decimate},
     )
 

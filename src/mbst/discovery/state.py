@@ -179,6 +179,18 @@ class DiscoveryState:
         """What the base cascade freed in each stage (the structure test refits the same)."""
         return {st.scenario: list(st.free) for st in self.base.stages}
 
+    def model_free(self, stage: str) -> list[str] | None:
+        """What the model as it stands frees in ``stage``: the cascade's set and the
+        accepted effects' own parameters (the extension fitted them with the stage);
+        ``None`` for a stage the cascade did not fit (``StageScorer``'s default)."""
+        if stage not in self.cascade_free:
+            return None
+        return [*self.cascade_free[stage], *self.extra_free.get(stage, ())]
+
+    @property
+    def model_free_by_stage(self) -> dict[str, list[str]]:
+        return {stage: self.model_free(stage) for stage in self.cascade_free}
+
     def room_for_more(self) -> bool:
         return len(self.accepted) < self.settings.max_effects
 

@@ -136,7 +136,7 @@ def _stage_scorer(state: DiscoveryState, stage: str) -> StageScorer:
     return StageScorer(state.model.stage_tests(stage, state.ids), stage, state.p,
                        state.scales, state.base.preid["upper"], settings.identify.decimate,
                        REFINE_NFEV, reset=state.compensating(),
-                       free=state.cascade_free.get(stage),
+                       free=state.model_free(stage),
                        evidence_gain=acceptance.EVIDENCE_SHARE_OF_MARGIN
                        * settings.min_relative_gain)
 

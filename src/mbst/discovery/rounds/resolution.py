@@ -230,7 +230,7 @@ def campaign_resolution(id_tests: list[PreparedTest], p: np.ndarray, scales: dic
     A pair whose component acts in no tested stage gets ``stage=None`` and no sizes.
 
     ``p`` is the model as it stands (after the accepted effects), ``stage_free``
-    what the cascade freed per stage, the margins those of acceptance
+    what it frees per stage (the cascade's set and the accepted effects'), the margins those of acceptance
     (``min_aic_drop`` None: ``acceptance.aic_drop_needed``), ``reset``
     the compensating parameters with their typical values (see
     ``structure.compensating_parameters``).
@@ -262,7 +262,7 @@ def resolution_round(state: DiscoveryState) -> None:
     t0 = time.perf_counter()
     settings = state.settings
     state.resolution = campaign_resolution(
-        state.ids, state.p, state.scales, state.cascade_free, settings.min_relative_gain,
-        settings.min_aic_drop, exclude=set(state.accepted),
+        state.ids, state.p, state.scales, state.model_free_by_stage,
+        settings.min_relative_gain, settings.min_aic_drop, exclude=set(state.accepted),
         decimate=settings.identify.decimate, reset=state.compensating())
     state.timings["resolution_s"] = time.perf_counter() - t0
