@@ -288,16 +288,8 @@ def test_an_effect_masked_by_a_larger_one_is_named_once_that_one_is_in(tmp_path)
     the stop was in. A later round rescored only what had shown evidence in round 1, so it
     was missed; the screen of every candidate against the extended model brings it back
     (``rounds/screen.py``). Both are named, with their components and sizes."""
-    recipe = BenchRecipe(effects=["stiffness_limit_stop:torsion_bar",
-                                  "position_dependent_friction:rack"], seed=121,
-                         plan=compact_plan(), realism=BenchRealism.realistic(),
-                         name="realistic")
-    camp = read_campaign(run_bench(tmp_path, recipe))
-    truth = {f"{e['effect']}:{e['component']}": e["parameters"]
-             for e in json.loads((tmp_path / "truth.json").read_text())["effects"]}
-    result = discover(camp, DiscoverSettings(sparse=False, neural=False))
-    named = {f"{f.effect}:{f.component}": f for f in result.findings if f.effect != "unexplained"}
-    assert set(named) == set(truth), {k: f.confidence for k, f in named.items()}
+    truth, named = _both_named(tmp_path, ["stiffness_limit_stop:torsion_bar",
+                                          "position_dependent_friction:rack"], rig=121)
     stop = named["stiffness_limit_stop:torsion_bar"].parameters
     assert stop["stop_angle_rad"] == pytest.approx(
         truth["stiffness_limit_stop:torsion_bar"]["stop_angle_rad"], rel=0.15)
@@ -313,16 +305,23 @@ def test_a_gap_beside_an_asymmetry_is_named_once_the_asymmetry_is_refitted_with_
     the gap refitted to 0.16° and 6.9 % of the stage (missed). Refitted with the round's
     candidates, as the extension fits it, the asymmetry returns to its size and the gap is
     named (2026-11-26: 1.206 and 0.54°, 55 % of the stage)."""
-    recipe = BenchRecipe(effects=["backlash:worm_gear", "asymmetric_friction:rack"], seed=120,
-                         plan=compact_plan(), realism=BenchRealism.realistic(),
-                         name="realistic")
+    truth, named = _both_named(tmp_path, ["backlash:worm_gear", "asymmetric_friction:rack"],
+                               rig=120)
+    assert named["asymmetric_friction:rack"].parameters["ratio"] == pytest.approx(
+        truth["asymmetric_friction:rack"]["ratio"], rel=0.1)
+    assert named["backlash:worm_gear"].parameters["width_rad"] == pytest.approx(
+        truth["backlash:worm_gear"]["width_rad"], rel=0.25)
+
+
+def _both_named(tmp_path, effects: list[str], rig: int) -> tuple[dict, dict]:
+    """Discovery on a realistic rig with ``effects`` planted: the truth's and the named
+    catalogue findings' parameters by key, after checking that exactly those are named."""
+    recipe = BenchRecipe(effects=effects, seed=rig, plan=compact_plan(),
+                         realism=BenchRealism.realistic(), name="realistic")
     camp = read_campaign(run_bench(tmp_path, recipe))
     truth = {f"{e['effect']}:{e['component']}": e["parameters"]
              for e in json.loads((tmp_path / "truth.json").read_text())["effects"]}
     result = discover(camp, DiscoverSettings(sparse=False, neural=False))
     named = {f"{f.effect}:{f.component}": f for f in result.findings if f.effect != "unexplained"}
     assert set(named) == set(truth), {k: f.confidence for k, f in named.items()}
-    assert named["asymmetric_friction:rack"].parameters["ratio"] == pytest.approx(
-        truth["asymmetric_friction:rack"]["ratio"], rel=0.1)
-    assert named["backlash:worm_gear"].parameters["width_rad"] == pytest.approx(
-        truth["backlash:worm_gear"]["width_rad"], rel=0.25)
+    return truth, named
