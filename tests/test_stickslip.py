@@ -140,3 +140,28 @@ def test_rank_compares_stages_by_the_share_of_their_own_misfit_removed():
                           "free_tie_rods", 312.0, 309.0, np.zeros(1), at_bound=["ratio"])
     order = rank([column, rack, motor])
     assert order[0] is motor and order[0].decided_by == "misfit"
+
+
+def test_each_grid_point_is_integrated_at_the_step_it_needs_itself(tmp_path):
+    """A batch runs at the finest step any of its rows needs: the steepest Stribeck dip
+    of the grid set every point's step (rig 122: 3652 sub-steps a sample for the base's
+    19, 311 s for one candidate). Each point's misfit is the one it has alone."""
+    from mbst.discovery.rounds.stickslip import StageEnvelope
+    from mbst.identify.fitting import prepare_test
+    from mbst.io.campaign import read_campaign
+    from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
+
+    recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())
+    camp = read_campaign(run_bench(tmp_path, recipe))
+    pt = next(prepare_test(camp, s, 0.005) for s in camp.identification_tests()
+              if s.scenario == "free_tie_rods")
+    model = pt.model
+    ratio, velocity = model.effects["stribeck_friction:rack"].free
+    ps = np.repeat(recipe.true_params()[None], 2, axis=0)
+    ps[:, model.param_index[ratio]] = 3.5
+    ps[0, model.param_index[velocity]] = model.spec(velocity).lower  # the steepest dip
+    steps = model.row_steps(pt, ps)
+    assert steps[0] > 2 * steps[1], steps  # they need different steps
+    env = StageEnvelope([pt], "free_tie_rods")
+    together = env.misfits(ps)
+    np.testing.assert_array_equal(together[1], env.misfits(ps[1:])[0])

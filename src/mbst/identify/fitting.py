@@ -215,15 +215,6 @@ def simulate_twin(pt: PreparedTest, p: np.ndarray) -> dict[str, np.ndarray]:
     return twins_of_tests([pt], [np.asarray(p, float)[None]])[0][0]
 
 
-def _measured_only(twin: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    return {ch: v for ch, v in twin.items() if not ch.startswith("internal.")}
-
-
-def twins_batch(pt: PreparedTest, ps: np.ndarray) -> list[dict[str, np.ndarray]]:
-    """Simulate many parameter vectors on one test in parallel (the family's batch simulator)."""
-    return [_measured_only(tw) for tw in twins_of_tests([pt], [ps])[0]]
-
-
 def channel_scales(tests: list[PreparedTest]) -> dict[str, float]:
     """Pooled standard deviation of each measured channel (residual weights)."""
     pooled: dict[str, list[np.ndarray]] = {}
