@@ -129,6 +129,9 @@ def test_same_seed_same_model_other_seed_other_model(backlash):
                                   b.predict(t)["steering_torque_nm"])
 
 
+# ~35 s: under -m slow for CI's time; a clean campaign's silence is held in CI by the
+# unexplained round's and the discovery clean-rig tests
+@pytest.mark.slow
 def test_clean_campaign_correction_stays_small(clean):
     m = NeuralResidual(seed=0).fit(clean)
     rows = _control_fits(m, clean)

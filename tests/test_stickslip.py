@@ -159,7 +159,7 @@ def test_each_grid_point_is_integrated_at_the_step_it_needs_itself(tmp_path):
     ratio, velocity = model.effects["stribeck_friction:rack"].free
     ps = np.repeat(recipe.true_params()[None], 2, axis=0)
     ps[:, model.param_index[ratio]] = 3.5
-    ps[0, model.param_index[velocity]] = model.spec(velocity).lower  # the steepest dip
+    ps[0, model.param_index[velocity]] = model.spec(velocity).default / 4  # a steeper dip
     steps = model.row_steps(pt, ps)
     assert steps[0] > 2 * steps[1], steps  # they need different steps
     env = StageEnvelope([pt], "free_tie_rods")
