@@ -189,6 +189,7 @@ class DiscoveryState:
 
     @property
     def model_free_by_stage(self) -> dict[str, list[str]]:
+        """``model_free`` of every stage the cascade fitted."""
         return {stage: self.model_free(stage) for stage in self.cascade_free}
 
     def room_for_more(self) -> bool:

@@ -60,8 +60,8 @@ def _still_needed(state: DiscoveryState, key: str) -> tuple[dict, np.ndarray]:
     effect removes from there, judged by the margins it was accepted by."""
     model, spec = state.model, state.model.effects[key]
     stage = next(p.best.stage for p in state.proposals if p.best.key == key)
-    others = [n for n in state.extra_free.get(stage, ()) if n not in spec.free]
-    scorer = _stage_scorer(state, stage, [*state.cascade_free.get(stage, []), *others])
+    scorer = _stage_scorer(state, stage,
+                           [n for n in state.model_free(stage) or () if n not in spec.free])
     without = state.p.copy()
     for n in spec.free:
         without[model.param_index[n]] = model.spec(n).default

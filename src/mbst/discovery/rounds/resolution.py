@@ -230,8 +230,8 @@ def campaign_resolution(id_tests: list[PreparedTest], p: np.ndarray, scales: dic
     A pair whose component acts in no tested stage gets ``stage=None`` and no sizes.
 
     ``p`` is the model as it stands (after the accepted effects), ``stage_free``
-    what it frees per stage (the cascade's set and the accepted effects'), the margins those of acceptance
-    (``min_aic_drop`` None: ``acceptance.aic_drop_needed``), ``reset``
+    what it frees per stage (the cascade's set and the accepted effects'), the margins
+    those of acceptance (``min_aic_drop`` None: ``acceptance.aic_drop_needed``), ``reset``
     the compensating parameters with their typical values (see
     ``structure.compensating_parameters``).
     """
