@@ -94,11 +94,16 @@ def below_limit(result, planted: dict) -> bool:
     res = next((r for r in result.resolution if r.key == key), None)
     if res is None or not res.sizes:
         return False
-    limit = res.detection_limit()
-    if limit is None:
-        return True
     model = result.base.model
     spec = model.effects[key]
+    # an effect that acts either way: the limit on the planted size's side of neutral
+    other = bool(res.other_side) and any(
+        (planted["parameters"][h] - model.spec(n).default)
+        * (spec.default_size[n] - model.spec(n).default) < 0
+        for h, n in spec.headline.items() if n in spec.other_side_size)
+    limit = res.detection_limit(other)
+    if limit is None:
+        return True
 
     def strength(h: str, v: float) -> float:
         name = spec.headline[h]

@@ -140,6 +140,14 @@ def test_effect_sizes_scale_from_the_neutral_value():
                     "torsion_bar.stiffness_limit_stop.stiffness_ratio": 15.0}  # 1 + 2 x 7
     power = scaled_size(EFFECTS["power_law_damping:motor"], EPS_MODEL, 2.0)
     assert power == {"motor.power_law_damping.exponent": 0.2}  # 1 - 2 x 0.5, at its bound
+    # ... and the other way from neutral, from its realistic size there (1.5)
+    spec = EFFECTS["power_law_damping:motor"]
+    assert scaled_size(spec, EPS_MODEL, 0.5, other_side=True) == {
+        "motor.power_law_damping.exponent": 1.25}
+    assert scaled_size(spec, EPS_MODEL, 4.0, other_side=True) == {
+        "motor.power_law_damping.exponent": 2.0}  # 1 + 4 x 0.5, at its bound
+    asym = EFFECTS["asymmetric_friction:rack"]  # a mirror image: one side tells the other
+    assert scaled_size(asym, EPS_MODEL, 1.0, other_side=True) == asym.default_size
     dahl = scaled_size(EFFECTS["presliding_hysteresis:rack"], EPS_MODEL, 2.0)
     assert dahl == {"rack.presliding_hysteresis.stiffness": 5e6}  # twice the presliding travel
     strib = scaled_size(EFFECTS["stribeck_friction:rack"], EPS_MODEL, 1.5)
@@ -181,6 +189,19 @@ def test_discover_outputs_carry_the_findings(backlash, tmp_path):
     bound = "at or below" if limit is rp.sizes[0] else "from"
     assert f"{bound} width_rad = {limit.values['width_rad']:.3g} ({deg:.2f}°)" in report
     assert set(sizes.detection_limit_multiple.dropna()) >= {limit.multiple}
+    # a power law is tried either way from neutral, each side with its own limit
+    power = sizes[(sizes.effect == "power_law_damping") & (sizes.component == "rack")]
+    assert (power[power.side == "realistic"]["size.exponent"] < 1).all()
+    assert (power[power.side == "other"]["size.exponent"] > 1).all()
+    assert len(power[power.side == "other"]) >= 5
+    pr = next(r for r in result.resolution if r.key == "power_law_damping:rack")
+    row = next(line for line in report.splitlines()
+               if line.startswith("| power_law_damping | rack |"))
+    assert "; the other way: " in row and (
+        f"exponent = {pr.detection_limit(True).values['exponent']:.3g}"
+        if pr.other_side_resolved_from else "**not resolved** up to exponent = 2") in row
+    assert "other_side" in on_disk["resolution"][[
+        r["effect"] + ":" + r["component"] for r in on_disk["resolution"]].index(pr.key)]
     for fig in ("reversal_zoom.png", "structure_test.png", "comparison.png", "hysteresis.png",
                 "resolution.png"):
         assert (tmp_path / "figures" / fig).stat().st_size > 10_000

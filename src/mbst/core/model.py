@@ -54,6 +54,9 @@ class EffectSpec:
     ``discovery/resolution.py`` scales them to find the smallest size a
     campaign resolves. Those in ``inverse_size`` make the effect stronger as
     they shrink (a Dahl stiffness: the presliding displacement is F_c/σ).
+    ``other_side_size``: for an effect that acts either way from neutral with another
+    shape (a power-law exponent below or above 1), the realistic size on the other
+    side; the resolution step states a detection limit for each side.
     """
 
     effect: str
@@ -64,6 +67,7 @@ class EffectSpec:
     absorbed_by: tuple[str, ...] = ()
     size_parameters: tuple[str, ...] = ()
     inverse_size: tuple[str, ...] = ()
+    other_side_size: dict[str, float] = field(default_factory=dict)
 
     @property
     def key(self) -> str:

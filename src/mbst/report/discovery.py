@@ -233,19 +233,24 @@ def _verdict(sig: ChannelSignature, level: float) -> str:
 
 def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
     """One row per (pair, size) of the predicted scores (``resolution.csv``)."""
-    columns = ["effect", "component", "stage", "multiple_of_realistic_size",
+    columns = ["effect", "component", "stage", "side", "multiple_of_realistic_size",
                "predicted_relative_gain", "predicted_aic_delta", "resolved",
                "detection_limit_multiple"]
     if not resolution:
         return pd.DataFrame(columns=columns)
+    # side: "realistic" for the realistic size's side of neutral, "other" for the other
+    # side of an effect that acts either way (a power-law exponent above 1)
     return pd.DataFrame([
-        {"effect": r.effect, "component": r.component, "stage": r.stage,
+        {"effect": r.effect, "component": r.component, "stage": r.stage, "side": side,
          "multiple_of_realistic_size": s.multiple,
          **{f"size.{k}": v for k, v in s.values.items()},
          "predicted_relative_gain": s.share, "predicted_aic_delta": s.aic_delta,
-         "resolved": r.resolved_from is not None and s.multiple >= r.resolved_from,
-         "detection_limit_multiple": r.resolved_from}
-        for r in resolution for s in r.sizes])
+         "resolved": limit is not None and s.multiple >= limit,
+         "detection_limit_multiple": limit}
+        for r in resolution
+        for side, sizes, limit in (("realistic", r.sizes, r.resolved_from),
+                                   ("other", r.other_side, r.other_side_resolved_from))
+        for s in sizes])
 
 
 def resolution_lines(result: DiscoveryResult) -> list[str]:
@@ -276,19 +281,26 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
         one = r.size_at(1.0)
         if one is None:  # the simulator could not run the realistic size
             continue
-        limit = r.detection_limit()
-        if limit is None:
-            where = "**not resolved** up to " + size_text(r.sizes[-1], r.size_parameters)
-        else:
-            # resolved already at the smallest size tried: the limit lies at or below it
-            bound = "at or below" if limit is r.sizes[0] else "from"
-            where = f"{bound} {size_text(limit, r.size_parameters)}, " + (
-                "below the realistic size" if limit.multiple < 1 else
-                "the realistic size" if limit.multiple == 1 else
-                f"{limit.multiple:g}× the realistic size")
+        where = limit_text(r, False)
+        if r.other_side:
+            where += "; the other way: " + limit_text(r, True)
         lines.append(f"| {r.effect} | {r.component} | {r.stage} | {100 * one.share:.1f} % | "
                      f"{one.aic_delta:.0f} | {where} |")
     return lines
+
+
+def limit_text(r: Resolution, other_side: bool) -> str:
+    """The detection limit of one side of neutral, in the effect's own unit."""
+    sizes = r.other_side if other_side else r.sizes
+    limit = r.detection_limit(other_side)
+    if limit is None:
+        return "**not resolved** up to " + size_text(sizes[-1], r.size_parameters)
+    # resolved already at the smallest size tried: the limit lies at or below it
+    bound = "at or below" if limit is sizes[0] else "from"
+    return f"{bound} {size_text(limit, r.size_parameters)}, " + (
+        "below the realistic size" if limit.multiple < 1 else
+        "the realistic size" if limit.multiple == 1 else
+        f"{limit.multiple:g}× the realistic size")
 
 
 def size_text(size, size_parameters: list[str]) -> str:

@@ -79,6 +79,10 @@ class Resolution:
     sizes: list[SizeScore] = field(default_factory=list)
     resolved_from: float | None = None  # the smallest multiple that clears both margins
     aic_drop_needed: float | None = None  # the significance margin it was judged by
+    # an effect that acts either way from neutral (``EffectSpec.other_side_size``): the
+    # sizes on the other side, and the smallest multiple of them resolved
+    other_side: list[SizeScore] = field(default_factory=list)
+    other_side_resolved_from: float | None = None
 
     @property
     def resolved_at_realistic_size(self) -> bool:
@@ -87,12 +91,21 @@ class Resolution:
     def size_at(self, multiple: float) -> SizeScore | None:
         return next((s for s in self.sizes if s.multiple == multiple), None)
 
-    def detection_limit(self) -> SizeScore | None:
-        """The smallest size tried that these tests resolve (None: none of them)."""
-        return next((s for s in self.sizes if s.multiple == self.resolved_from), None)
+    def detection_limit(self, other_side: bool = False) -> SizeScore | None:
+        """The smallest size tried that these tests resolve (None: none of them), on the
+        realistic size's side of neutral or, with ``other_side``, on the other."""
+        sizes, limit = ((self.other_side, self.other_side_resolved_from) if other_side
+                        else (self.sizes, self.resolved_from))
+        return next((s for s in sizes if s.multiple == limit), None)
 
     def record(self) -> dict:
-        return {"effect": self.effect, "component": self.component, "stage": self.stage,
+        other = {"other_side": {
+            "resolved_from_multiple": self.other_side_resolved_from,
+            "sizes": [{"multiple": s.multiple, "parameters": s.values,
+                       "predicted_relative_gain": s.share,
+                       "predicted_aic_delta": s.aic_delta} for s in self.other_side]}
+        } if self.other_side else {}
+        return {**other, "effect": self.effect, "component": self.component, "stage": self.stage,
                 "size_parameters": self.size_parameters,
                 "resolved_from_multiple": self.resolved_from,
                 "aic_drop_needed": self.aic_drop_needed,
@@ -108,17 +121,21 @@ def size_parameters(spec: EffectSpec, model: ModelDefinition) -> tuple[str, ...]
     return tuple(n for n in spec.free if spec.default_size[n] != model.spec(n).default)
 
 
-def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float) -> dict[str, float]:
+def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float,
+                other_side: bool = False) -> dict[str, float]:
     """The effect's parameters with its strength ``multiple`` × the realistic size.
 
     Strength parameters go from their neutral value ``multiple`` times as far as
     the realistic size (those in ``EffectSpec.inverse_size`` to the realistic size
     divided by ``multiple``), clipped to their bounds; the others keep the
-    realistic size.
+    realistic size. With ``other_side``, the realistic size is the one on the other
+    side of neutral (``EffectSpec.other_side_size``).
     """
-    out = dict(spec.default_size)
+    realistic = {**spec.default_size, **spec.other_side_size} if other_side \
+        else spec.default_size
+    out = dict(realistic)
     for n in size_parameters(spec, model):
-        ps, size = model.spec(n), spec.default_size[n]
+        ps, size = model.spec(n), realistic[n]
         v = size / multiple if n in spec.inverse_size else \
             ps.default + multiple * (size - ps.default)
         out[n] = float(np.clip(v, ps.lower, ps.upper))
@@ -188,35 +205,45 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
     n_eff = scorer.residual_n_eff(p)
     points = [p] + ([scorer.reset_start(p)] if scorer.reset else [])
     bases = [column_basis(refit_jacobian(scorer, q)) for q in points]
-    out = []
-    for spec in specs:
-        res = Resolution(spec.key, spec.effect, spec.component, stage,
-                         [h for h, n in spec.headline.items()
-                          if n in size_parameters(spec, model)])
-        sizes, seen = [], set()
-        for m in multiples:
-            values = scaled_size(spec, model, m)
-            key = tuple(round(v, 12) for v in values.values())
-            if key not in seen:  # a multiple clipped to the bound repeats the last size
-                seen.add(key)
-                sizes.append((m, values))
-        energy = np.full(len(sizes), np.nan)  # NaN: no finite twin at that size
-        for q, basis in zip(points, bases, strict=True):
-            rows = np.repeat(q[None], len(sizes), axis=0)
-            for i, (_, values) in enumerate(sizes):
-                for n, v in values.items():
-                    rows[i, model.param_index[n]] = v
-            for i, di in enumerate(effect_signals(scorer, q, rows)):
-                if np.all(np.isfinite(di)):
-                    left = di - basis @ (basis.T @ di)
-                    energy[i] = np.fmax(energy[i], 0.5 * float(left @ left))
-        for (m, values), e in zip(sizes, energy, strict=True):
-            if np.isnan(e):  # a size the simulator could not run says nothing
-                continue
-            res.sizes.append(SizeScore(
-                m, {h: float(values[n]) for h, n in spec.headline.items()},
-                *predicted_score(cost, e, n_eff, len(spec.free))))
-        out.append(res)
+    # every size of every pair in one set of rows: the point itself is integrated once per
+    # step the rows need, not once per pair
+    sizes = [(spec, *size) for spec in specs
+             for side in ((False, True) if spec.other_side_size else (False,))
+             for size in _sizes(spec, model, multiples, side)]
+    energy = np.full(len(sizes), np.nan)  # NaN: no finite twin at that size
+    for q, basis in zip(points, bases, strict=True):
+        rows = np.repeat(q[None], len(sizes), axis=0)
+        for i, (_, _, _, values) in enumerate(sizes):
+            for n, v in values.items():
+                rows[i, model.param_index[n]] = v
+        for i, di in enumerate(effect_signals(scorer, q, rows)):
+            if np.all(np.isfinite(di)):
+                left = di - basis @ (basis.T @ di)
+                energy[i] = np.fmax(energy[i], 0.5 * float(left @ left))
+    out = {spec.key: Resolution(spec.key, spec.effect, spec.component, stage,
+                                [h for h, n in spec.headline.items()
+                                 if n in size_parameters(spec, model)]) for spec in specs}
+    for (spec, other, m, values), e in zip(sizes, energy, strict=True):
+        if np.isnan(e):  # a size the simulator could not run says nothing
+            continue
+        res = out[spec.key]
+        (res.other_side if other else res.sizes).append(SizeScore(
+            m, {h: float(values[n]) for h, n in spec.headline.items()},
+            *predicted_score(cost, e, n_eff, len(spec.free))))
+    return list(out.values())
+
+
+def _sizes(spec: EffectSpec, model: ModelDefinition, multiples: tuple[float, ...],
+           other_side: bool) -> list[tuple[bool, float, dict[str, float]]]:
+    """(``other_side``, multiple, parameter values) of each size tried on one side of
+    neutral; a multiple clipped to the bound repeats the last size and is left out."""
+    out, seen = [], set()
+    for m in multiples:
+        values = scaled_size(spec, model, m, other_side)
+        key = tuple(round(v, 12) for v in values.values())
+        if key not in seen:
+            seen.add(key)
+            out.append((other_side, m, values))
     return out
 
 
@@ -254,6 +281,8 @@ def campaign_resolution(id_tests: list[PreparedTest], p: np.ndarray, scales: dic
         r.aic_drop_needed = drop = aic_drop_needed(len(model.effects[r.key].free),
                                                    len(model.catalogue), min_aic_drop)
         r.resolved_from = next((s.multiple for s in r.sizes if s.clears(min_gain, drop)), None)
+        r.other_side_resolved_from = next(
+            (s.multiple for s in r.other_side if s.clears(min_gain, drop)), None)
     return out
 
 
