@@ -212,9 +212,12 @@ def stick_slip(result, path: Path) -> bool:
         axes[0].plot(pt.time_s, s * hp(y), label=name, **MODEL_STYLE.get(name, {}))
         axes[1].plot(pt.time_s, s * np.sqrt(stickslip.hf_power(y, pt.dt_s) + pn),
                      label=f"{name} + sensor noise", **MODEL_STYLE.get(name, {}))
+    # the twins are driven by the measured input: its sensor noise, through a stiff part
+    # (the torsion bar of a blocked column), shows in their fast part and the measured
+    # output's does not; the test's base misfit carries it alike for every candidate
     plots._style(axes[0], f"{pt.id}: {label_of(ch)} above {stickslip.HIGHPASS_HZ:g} Hz "
-                 "(where a stick-slip sawtooth shows; its phase is not repeatable)",
-                 label_of(ch), "")
+                 "(where a stick-slip sawtooth shows; its phase is not repeatable; the "
+                 "twins carry the measured input's noise)", label_of(ch), "")
     verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
     plots._style(axes[1], f"envelope over {stickslip.WINDOW_S:g} s: what the stick-slip test "
                  f"compares ({stage}, {verdict})", f"rms {label_of(ch)}")
