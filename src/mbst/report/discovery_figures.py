@@ -110,25 +110,35 @@ def resolution_bars(result, path: Path) -> bool:
     most = max(s.multiple for r in res for s in r.sizes)
     ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
                zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
-    ax.set_yticks(y, [f"{r.key} ({r.stage})" + (
-        (f" — from ≤ {r.resolved_from:g}×" if r.resolved_from == r.sizes[0].multiple else
-         f" — from {r.resolved_from:g}×") if r.resolved_from else
-        f" — not resolved ({100 * r.sizes[-1].share:.0f} %, ΔAIC {r.sizes[-1].aic_delta:.0f}"
-        f" at {r.sizes[-1].multiple:g}×)")
-        for r in res], fontsize=7)
+    ax.set_yticks(y, [f"{r.key} ({r.stage}) — " + _limit_label(r.sizes, r.resolved_from) + (
+        "; the other way " + _limit_label(r.other_side, r.other_side_resolved_from, False)
+        if r.other_side else "") for r in res], fontsize=7)
     ax.axvline(100 * result_margin(result), color="tab:red", ls="--", lw=1,
                label=f"acceptance margin (and {aic_margin_text(result)})")
     ax.set_xlim(0, 100)
     ax.set_xlabel("predicted share of its stage's residual cost removed [%]", fontsize=8)
-    ax.set_title("What these tests can resolve, bar: at the realistic size; 'from k×': the "
-                 "smallest size resolved (detection limit)\ngreen: resolved "
+    ax.set_title("What these tests can resolve. Bar: at the realistic size; 'from k×': the "
+                 "smallest size resolved\n(the detection limit; 'the other way': an effect "
+                 "that acts either way from neutral, on the other side)\ngreen: resolved "
                  f"there · orange: only larger · gray: not up to {most:g}× or the bound",
                  fontsize=8)
     ax.grid(axis="x", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+    # below the axes: inside, it covered the longest labels of the smallest bars
+    ax.legend(fontsize=7, loc="upper right", bbox_to_anchor=(1.0, -0.07))
     fig.tight_layout(pad=1.5)
     plots.save_figure(fig, path)
     return True
+
+
+def _limit_label(sizes: list, resolved_from: float | None, detail: bool = True) -> str:
+    """'from k×' (the detection limit), or, with ``detail``, what the largest size tried
+    predicts where none is resolved."""
+    if resolved_from:
+        return (f"from ≤ {resolved_from:g}×" if resolved_from == sizes[0].multiple
+                else f"from {resolved_from:g}×")
+    return (f"not resolved ({100 * sizes[-1].share:.0f} %, ΔAIC {sizes[-1].aic_delta:.0f}"
+            f" at {sizes[-1].multiple:g}×)") if detail else "not resolved"
+
 
 
 def result_margin(result) -> float:

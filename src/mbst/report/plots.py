@@ -46,7 +46,8 @@ MODEL_STYLE = {
 
 def save_figure(fig, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    # tight: long tick labels (a pair's detection limits) and titles are never cut off
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
