@@ -200,6 +200,10 @@ def test_discover_outputs_carry_the_findings(backlash, tmp_path):
     assert "; the other way: " in row and (
         f"exponent = {pr.detection_limit(True).values['exponent']:.3g}"
         if pr.other_side_resolved_from else "**not resolved** up to exponent = 2") in row
+    # how far each stage's fit is from its noise floor: the model as it stands explains the
+    # plain bench down to it (a realistic rig's leaves 22-33x, docs/discovery.md)
+    assert 0.8 < pr.stage_over_floor < 2.0
+    assert f"{pr.stage_over_floor:.1f}× (free_tie_rods)" in report
     assert "other_side" in on_disk["resolution"][[
         r["effect"] + ":" + r["component"] for r in on_disk["resolution"]].index(pr.key)]
     for fig in ("reversal_zoom.png", "structure_test.png", "comparison.png", "hysteresis.png",

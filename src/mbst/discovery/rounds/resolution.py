@@ -83,6 +83,9 @@ class Resolution:
     # sizes on the other side, and the smallest multiple of them resolved
     other_side: list[SizeScore] = field(default_factory=list)
     other_side_resolved_from: float | None = None
+    # the stage's cost at the model as it stands over what its noise floor would leave:
+    # well above 1, the model misses more than this pair, and the prediction is optimistic
+    stage_over_floor: float | None = None
 
     @property
     def resolved_at_realistic_size(self) -> bool:
@@ -105,6 +108,7 @@ class Resolution:
                        "predicted_relative_gain": s.share,
                        "predicted_aic_delta": s.aic_delta} for s in self.other_side]}
         } if self.other_side else {}
+        other["stage_cost_over_noise_floor"] = self.stage_over_floor
         return {**other, "effect": self.effect, "component": self.component, "stage": self.stage,
                 "size_parameters": self.size_parameters,
                 "resolved_from_multiple": self.resolved_from,
@@ -220,9 +224,12 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
             if np.all(np.isfinite(di)):
                 left = di - basis @ (basis.T @ di)
                 energy[i] = np.fmax(energy[i], 0.5 * float(left @ left))
+    floor = scorer.noise_cost()
     out = {spec.key: Resolution(spec.key, spec.effect, spec.component, stage,
                                 [h for h, n in spec.headline.items()
-                                 if n in size_parameters(spec, model)]) for spec in specs}
+                                 if n in size_parameters(spec, model)],
+                                stage_over_floor=cost / floor if floor > 0 else None)
+           for spec in specs}
     for (spec, other, m, values), e in zip(sizes, energy, strict=True):
         if np.isnan(e):  # a size the simulator could not run says nothing
             continue
