@@ -20,7 +20,13 @@ from discovery_cases import SETTINGS, assert_first_finding, run_case
 from mbst.discovery.pipeline import DiscoverSettings, discover
 from mbst.discovery.structure import stage_for
 from mbst.io.campaign import read_campaign
-from mbst.report.discovery import write_discover_outputs
+from mbst.report.discovery import (
+    discovery_record,
+    resolution_lines,
+    resolution_table,
+    write_discover_outputs,
+)
+from mbst.report.discovery_figures import resolution_bars
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 from mbst.systems.eps.model import EPS_MODEL
 from mbst.systems.eps.params import EFFECT_CATALOGUE, EFFECTS
@@ -122,6 +128,52 @@ def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
     # margin the sweep names it from a ratio of 2.6, 2x its realistic size (12.8 % of the
     # stage, ΔAIC −29; measured 2026-11-25), where the fixed ΔAIC ≤ −100 needed a ratio of 3
     assert resolution["stribeck_friction:steering_column"].resolved_from in (2.0, 3.0)
+    if seed == 1:
+        _check_resolution_report(result, tmp_path_factory.mktemp("resolution"))
+
+
+def _check_resolution_report(result, out) -> None:
+    """What these tests resolve, as the report, resolution.csv, discovery.json and the
+    figure state it: each pair's detection limit in its own unit, both ways for an effect
+    that acts either way, and how far each stage's fit is from its noise floor."""
+    sizes = resolution_table(result.resolution)
+    report = "\n".join(resolution_lines(result))
+    record = {r["effect"] + ":" + r["component"]: r for r in discovery_record(result)["resolution"]}
+    first = sizes[(sizes.effect == "backlash") & (sizes.component == "rack_pinion")
+                  & (sizes.multiple_of_realistic_size == 1.0) & (sizes.side == "realistic")]
+    assert first["size.width_rad"].item() == EFFECTS["backlash:rack_pinion"].default_size[
+        "rack_pinion.backlash.width_rad"] and first.resolved.item()
+    assert "| backlash | rack_pinion | free_tie_rods |" in report
+    # the detection limit, in the effect's own unit: the smallest width these tests resolve
+    rp = next(r for r in result.resolution if r.key == "backlash:rack_pinion")
+    limit = rp.detection_limit()
+    assert limit.multiple < 1.0 and limit.share >= result.settings.min_relative_gain
+    smaller = [s for s in rp.sizes if s.multiple < limit.multiple]
+    assert all(not s.clears(result.settings.min_relative_gain, rp.aic_drop_needed)
+               for s in smaller)
+    deg = np.degrees(limit.values["width_rad"])
+    bound = "at or below" if limit is rp.sizes[0] else "from"
+    assert f"{bound} width_rad = {limit.values['width_rad']:.3g} ({deg:.2f}°)" in report
+    assert set(sizes.detection_limit_multiple.dropna()) >= {limit.multiple}
+    # a power law is tried either way from neutral, each side with its own limit
+    power = sizes[(sizes.effect == "power_law_damping") & (sizes.component == "rack")]
+    assert (power[power.side == "realistic"]["size.exponent"] < 1).all()
+    assert (power[power.side == "other"]["size.exponent"] > 1).all()
+    assert len(power[power.side == "other"]) >= 5
+    pr = next(r for r in result.resolution if r.key == "power_law_damping:rack")
+    row = next(line for line in report.splitlines()
+               if line.startswith("| power_law_damping | rack |"))
+    assert "; the other way: " in row and (
+        f"exponent = {pr.detection_limit(True).values['exponent']:.3g}"
+        if pr.other_side_resolved_from else "**not resolved** up to exponent = 2") in row
+    assert "other_side" in record[pr.key]
+    # how far each stage's fit is from its noise floor: the base model explains the plain
+    # bench down to it (a realistic rig's leaves 22-33x, docs/discovery.md)
+    assert 0.8 < pr.stage_over_floor < 2.0
+    assert f"{pr.stage_over_floor:.1f}× (free_tie_rods)" in report
+    assert record[pr.key]["stage_cost_over_noise_floor"] == pr.stage_over_floor
+    assert resolution_bars(result, out / "resolution.png")
+    assert (out / "resolution.png").stat().st_size > 10_000
 
 
 @pytest.mark.parametrize("key", [

@@ -126,7 +126,7 @@ def resolution_bars(result, path: Path) -> bool:
     # below the axes: inside, it covered the longest labels of the smallest bars
     ax.legend(fontsize=7, loc="upper right", bbox_to_anchor=(1.0, -0.07))
     fig.tight_layout(pad=1.5)
-    plots.save_figure(fig, path)
+    plots.save_figure(fig, path, tight=True)  # a pair's limits both ways make long labels
     return True
 
 

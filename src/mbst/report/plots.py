@@ -44,10 +44,11 @@ MODEL_STYLE = {
 }
 
 
-def save_figure(fig, path: Path) -> None:
+def save_figure(fig, path: Path, tight: bool = False) -> None:
+    """``tight``: the saved area fits what is drawn (long tick labels); it draws the
+    figure twice, twice the time of a figure of long traces, so only where asked."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    # tight: long tick labels (a pair's detection limits) and titles are never cut off
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=110, bbox_inches="tight" if tight else None)
     plt.close(fig)
 
 
