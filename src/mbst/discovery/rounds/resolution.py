@@ -33,6 +33,13 @@ fixed ΔAIC ≤ −100 it needed a ratio of 3). Motor and rack
 Stribeck friction make the rig stick-slip; the break-away instants then hang
 on the input noise and no output-error refit reaches the share predicted here,
 but the envelope test (discovery step 4b) names them.
+
+An effect that acts either way from neutral with another shape (a power-law exponent
+below or above 1: ``EffectSpec.other_side_size``) is tried on both sides, each with its
+own limit. The prediction takes the rest of the model as right; each pair records how far
+its stage's fit is from the noise floor (``Resolution.stage_over_floor``), and where that
+is many times 1 (a realistic bench rig: 22x) a refit takes more of an effect than the
+linearised one and the limits are optimistic (docs/discovery.md).
 """
 
 from __future__ import annotations
