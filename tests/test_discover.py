@@ -136,6 +136,38 @@ def test_start_grid_covers_each_headline_parameter():
             assert len({g[name] for g in grid}) >= 2, (spec.key, name)
 
 
+def test_resolution_is_judged_against_the_model_as_it_stands(monkeypatch):
+    """What an accepted effect explains is no longer a candidate of the resolution step
+    (the backlash fixture runs without that step; its report is checked on the clean
+    campaign, tests/test_hidden_effects.py)."""
+    from types import SimpleNamespace
+
+    import mbst.discovery.rounds.resolution as resolution_mod
+
+    seen = {}
+    monkeypatch.setattr(resolution_mod, "campaign_resolution",
+                        lambda *a, **k: seen.update(k) or [])
+    state = SimpleNamespace(
+        ids=[], p=np.zeros(1), scales={}, model_free_by_stage={"free_tie_rods": ["x"]},
+        accepted=["backlash:worm_gear"], compensating=lambda: {"x": 1.0}, timings={},
+        settings=SimpleNamespace(min_relative_gain=0.1, min_aic_drop=None,
+                                 identify=SimpleNamespace(decimate=2)))
+    resolution_mod.resolution_round(state)
+    assert seen["exclude"] == {"backlash:worm_gear"}
+    assert seen["reset"] == {"x": 1.0}
+    assert state.resolution == [] and "resolution_s" in state.timings
+    # ... and the step leaves out what it is told to: every pair but one the blocked
+    # column cannot show is excluded, so nothing is simulated and that one is not tested
+    monkeypatch.undo()
+    pt = SimpleNamespace(model=EPS_MODEL, scenario="blocked_column",
+                         spec=SimpleNamespace(motor="passive"))
+    keep = "stribeck_friction:tires"
+    out = resolution_mod.campaign_resolution(
+        [pt], np.zeros(len(EPS_MODEL.param_index)), {}, {}, 0.1, None,
+        exclude={e.key for e in EFFECT_CATALOGUE} - {keep})
+    assert [(r.key, r.stage, r.sizes) for r in out] == [(keep, None, [])]
+
+
 def test_effect_sizes_scale_from_the_neutral_value():
     """Only what sets an effect's strength is scaled, away from its neutral value."""
     stop = scaled_size(EFFECTS["stiffness_limit_stop:torsion_bar"], EPS_MODEL, 2.0)

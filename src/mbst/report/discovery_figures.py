@@ -140,7 +140,6 @@ def _limit_label(sizes: list, resolved_from: float | None, detail: bool = True) 
             f" at {sizes[-1].multiple:g}×)") if detail else "not resolved"
 
 
-
 def result_margin(result) -> float:
     return float(result.settings.min_relative_gain)
 

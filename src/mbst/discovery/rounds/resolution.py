@@ -73,6 +73,10 @@ class SizeScore:
     def clears(self, min_gain: float, min_aic_drop: float) -> bool:
         return self.share >= min_gain and self.aic_delta <= -min_aic_drop
 
+    def record(self) -> dict:
+        return {"multiple": self.multiple, "parameters": self.values,
+                "predicted_relative_gain": self.share, "predicted_aic_delta": self.aic_delta}
+
 
 @dataclass
 class Resolution:
@@ -109,20 +113,16 @@ class Resolution:
         return next((s for s in sizes if s.multiple == limit), None)
 
     def record(self) -> dict:
-        other = {"other_side": {
-            "resolved_from_multiple": self.other_side_resolved_from,
-            "sizes": [{"multiple": s.multiple, "parameters": s.values,
-                       "predicted_relative_gain": s.share,
-                       "predicted_aic_delta": s.aic_delta} for s in self.other_side]}
-        } if self.other_side else {}
-        other["stage_cost_over_noise_floor"] = self.stage_over_floor
-        return {**other, "effect": self.effect, "component": self.component, "stage": self.stage,
-                "size_parameters": self.size_parameters,
-                "resolved_from_multiple": self.resolved_from,
-                "aic_drop_needed": self.aic_drop_needed,
-                "sizes": [{"multiple": s.multiple, "parameters": s.values,
-                           "predicted_relative_gain": s.share,
-                           "predicted_aic_delta": s.aic_delta} for s in self.sizes]}
+        rec = {"effect": self.effect, "component": self.component, "stage": self.stage,
+               "size_parameters": self.size_parameters,
+               "resolved_from_multiple": self.resolved_from,
+               "aic_drop_needed": self.aic_drop_needed,
+               "stage_cost_over_noise_floor": self.stage_over_floor,
+               "sizes": [s.record() for s in self.sizes]}
+        if self.other_side:
+            rec["other_side"] = {"resolved_from_multiple": self.other_side_resolved_from,
+                                 "sizes": [s.record() for s in self.other_side]}
+        return rec
 
 
 def size_parameters(spec: EffectSpec, model: ModelDefinition) -> tuple[str, ...]:
