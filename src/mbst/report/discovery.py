@@ -297,13 +297,17 @@ def _floor_caveat(resolution: list[Resolution]) -> list[str]:
         return []
     return ["", "The prediction takes the rest of the model as right. Each stage's fit "
             "leaves " + ", ".join(f"{v:.1f}× ({st})" for st, v in sorted(over.items()))
-            + " the cost its noise floor would leave. Where that is well above 1 the model "
-            "misses more than any one pair (sensor lags, known values off, an effect the "
-            "catalogue lacks), a refit takes more of an effect than the linearised one, and "
-            "the limits above are optimistic: on a realistic clean bench rig (free tie-rods "
-            "at 22× its floor) a rack load-dependent friction predicted to remove 7.3 % of "
-            "its stage at the realistic size removed 2.0 % when added to the data and "
-            "refitted, and 12.7 % at twice that size where 53 % was predicted."]
+            + " the cost its noise floor would leave. The floor counts each sensor's fast "
+            "noise; noise that wanders over tens of milliseconds counts in the fit's cost "
+            "and not in the floor (a clean realistic bench rig: 22× and 33× with AR(1) "
+            "noise, 1.6× and 3.0× with the same noise white). A ratio well above 1 with "
+            "white noise means the model misses more than any one pair (sensor lags, known "
+            "values off, an effect the catalogue lacks). Either way a refit can take more "
+            "of an effect than the linearised prediction, and the limits above can be "
+            "optimistic: on that rig a rack load-dependent friction "
+            "predicted to remove 7.3 % of its stage at the realistic size removed 2.0 % "
+            "when added to the data and refitted, and 12.7 % at twice that size where 53 % "
+            "was predicted."]
 
 
 def limit_text(r: Resolution, other_side: bool) -> str:

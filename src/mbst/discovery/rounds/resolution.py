@@ -38,8 +38,9 @@ An effect that acts either way from neutral with another shape (a power-law expo
 below or above 1: ``EffectSpec.other_side_size``) is tried on both sides, each with its
 own limit. The prediction takes the rest of the model as right; each pair records how far
 its stage's fit is from the noise floor (``Resolution.stage_over_floor``), and where that
-is many times 1 (a realistic bench rig: 22x) a refit takes more of an effect than the
-linearised one and the limits are optimistic (docs/discovery.md).
+is many times 1 with white noise a refit takes more of an effect than the linearised one
+and the limits are optimistic (docs/discovery.md; noise that wanders raises the ratio
+too: the floor counts each sensor's fast noise).
 """
 
 from __future__ import annotations
