@@ -96,7 +96,8 @@ class Resolution:
     other_side: list[SizeScore] = field(default_factory=list)
     other_side_resolved_from: float | None = None
     # the stage's cost at the model as it stands over what its noise floor would leave:
-    # well above 1, the model misses more than this pair, and the prediction is optimistic
+    # well above 1 the noise wanders (the floor counts fast noise only) or the model misses
+    # more than this pair, and a refit may take more of the effect than predicted
     stage_over_floor: float | None = None
 
     @property
