@@ -39,6 +39,7 @@ from mbst.systems.eps.bench import (
     run_bench,
 )
 from mbst.systems.eps.model import EPS_MODEL
+from mbst.systems.eps.realism import BenchRealism
 
 SINE = {"kind": "sine", "amplitude_deg": 1.25, "frequency_hz": 0.5, "cycles": 5}
 TAU = IdentifySettings().tau_s
@@ -274,3 +275,61 @@ def test_another_familys_campaign_gets_a_note_not_a_failure(tmp_path):
     assert main(["plan", "--resolve", str(tmp_path), "--out", str(out), "--quiet"]) == 0
     res = json.loads((out / "resolve.json").read_text())
     assert res["added_tests"] == [] and "knows the eps-column-assist rig" in res["notes"][0]
+
+
+def _signature_record(camp, p, out: Path, readings: list[tuple[str, list[str]]]) -> Path:
+    """A record whose extended model ``p`` leaves structure in the torque that discovery's
+    unexplained round read several ways: per entry, its best group and the groups it ranked
+    within the margin (``min_share``) of it."""
+    model = camp.model()
+    channels = [{"channel": "steering_torque_nm", "structured": True, "min_share": 0.1,
+                 "learned_gain": 0.9, "best": {"group": best, "share_of_residual": 0.3},
+                 "ranking": [{"group": g, "share_of_residual": s} for g, s in
+                             [(best, 0.3)] + [(r, 0.28) for r in rivals]]}
+                for best, rivals in readings]
+    rec = {"format": "mbst-discovery/2", "vector": model.as_dict(p),
+           "acceptance": {"min_relative_gain": 0.1, "min_aic_drop": None},
+           "stages": {"campaign_path": str(camp.path), "tau_s": TAU, "decimate": 2,
+                      "stage_free": {"free_tie_rods": list(model.stage_free()["free_tie_rods"])},
+                      "compensating": {}},
+           "resolution": [],
+           "findings": [{"effect": "unexplained", "component": "motor", "stage": "free_tie_rods",
+                         "parameters": {}, "signature": {"channels": channels}}]}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "discovery.json").write_text(json.dumps(rec))
+    return out
+
+
+def test_an_unexplained_findings_open_reading_is_decided_by_a_designed_test(tmp_path):
+    """A motor cogging the catalogue lacks, on the free tie-rods: the torque's structure read
+    as a ripple in the motor's angle or in the pinion's (the worm gear's 16.5 makes them
+    nearly one ripple) is a question the three tests leave open and a designed test decides.
+    A reading the campaign already rules out is no question; two readings of quantities the
+    rig moves together (the motor's angle and the rack's position) no candidate parts."""
+    plan = [t for t in compact_plan() if t.scenario == "free_tie_rods"]
+    recipe = BenchRecipe(effects=[], seed=1, plan=plan, realism=BenchRealism(cogging_nm=0.004))
+    camp = read_campaign(run_bench(tmp_path / "bench", recipe))
+    disc = _signature_record(camp, recipe.true_params(), tmp_path / "disc", [
+        ("periodic:motor_angle_rad", ["periodic:pinion_angle_rad",
+                                      "polynomial:torsion_bar_torque_nm"]),
+        ("polynomial:motor_angle_rad", ["polynomial:rack_position_m"])])
+    out = tmp_path / "resolve"
+    assert main(["plan", "--resolve", str(disc), "--out", str(out), "--budget-share", "1",
+                 "--quiet"]) == 0
+    rec = json.loads((out / "resolve.json").read_text())
+    by_rival = {r["rival"]: r for r in rec["questions"]}
+    # the torsion-bar torque law predicts worse on every held-out test: ruled out, not asked
+    assert set(by_rival) == {"periodic:pinion_angle_rad", "polynomial:rack_position_m"}
+    assert all(r["effect"] == "unexplained" and r["stage"] == "free_tie_rods"
+               for r in rec["questions"])
+    ripple = by_rival["periodic:pinion_angle_rad"]
+    assert ripple["observed_share"] < 0.95
+    assert not ripple["resolved_before"] and ripple["resolved_after"]
+    added = rec["added_tests"]
+    assert added and sum(t["duration_s"] for t in added) <= rec["budget"]["test_time_s"]
+    together = by_rival["polynomial:rack_position_m"]  # the rack follows the motor
+    assert together["share_before"] < 1e-6 and together["share_after"] < 1e-6
+    assert not together["resolved_after"]
+    page = (out / "resolve.md").read_text()
+    assert "periodic:motor_angle_rad (order" in page and "or periodic:pinion_angle_rad" in page
+    assert "the rival reading follows the structure in every candidate" in page

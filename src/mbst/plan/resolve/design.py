@@ -23,6 +23,11 @@ of block-bootstrap resamples; for a separation ``E`` against noise, the cost
 difference has mean ``E`` and a spread that makes that ``sqrt(LR)/2 ≥ 1.645``
 with ``LR = n_eff · ln((C + E)/C)``: ``LR ≥ 10.8`` (``RIVAL_LR``).
 
+A signature question (an unexplained finding read two ways, ``signatures.py``)
+is scored as a rival one on the finding's channel alone: the best reading's
+learned term is the signal, the rival reading's features with the channel's
+scale join the stage's refit, and the cost is the channel's.
+
 The selection is greedy on test time: each step adds the candidate that
 brings the open questions furthest towards their margins per second of test,
 until every question clears them with a safety factor or the budget is spent.
@@ -36,6 +41,7 @@ import numpy as np
 from scipy.stats import norm
 
 from mbst.discovery.acceptance import SEPARATED_SHARE, aic_drop_needed
+from mbst.discovery.data import residual_data
 from mbst.discovery.rounds.resolution import (
     column_basis,
     effect_signals,
@@ -45,6 +51,7 @@ from mbst.discovery.rounds.resolution import (
 from mbst.discovery.structure import StageScorer, effective_samples
 from mbst.identify.fitting import PreparedTest, solve
 from mbst.plan.resolve.questions import Question
+from mbst.plan.resolve.signatures import signature_rows
 
 # the prediction is linear and erred either way near the margins (resolution.py): design
 # until each question clears both margins by this factor
@@ -81,6 +88,8 @@ class TestBlocks:
     signals: list[np.ndarray]  # per point: (questions of the stage, rows)
     # per point, per rival question: the rival model's refit Jacobian (rows, its columns)
     rival_jacobians: list[dict[str, np.ndarray]] = field(default_factory=list)
+    channels: list[str] = field(default_factory=list)  # the channel of each residual block
+    channel_costs: dict[str, float] = field(default_factory=dict)  # cost per channel
 
 
 @dataclass
@@ -92,20 +101,20 @@ class Margins:
     candidates: int  # catalogue size (the significance margin's multiple comparisons)
 
     def drop(self, q: Question) -> float:
-        if q.rival is not None:
+        if q.competing:
             return q.lr_needed or RIVAL_LR
-        return aic_drop_needed(len(q.spec.free), self.candidates, self.min_aic_drop)
+        return aic_drop_needed(q.free_count, self.candidates, self.min_aic_drop)
 
     def progress(self, q: Question, share: float, aic: float) -> float:
         """How far a prediction is towards both margins × SAFETY (1: clears both); a
         rival question has the separation margin only (both models explain the stage)."""
         towards_aic = -aic / (SAFETY * self.drop(q))
-        if q.rival is not None:
+        if q.competing:
             return float(np.clip(towards_aic, 0.0, 1.0))
         return float(np.clip(min(share / (SAFETY * self.min_gain), towards_aic), 0.0, 1.0))
 
     def clears(self, q: Question, share: float, aic: float) -> bool:
-        return (q.rival is not None or share >= self.min_gain) and aic <= -self.drop(q)
+        return (q.competing or share >= self.min_gain) and aic <= -self.drop(q)
 
 
 @dataclass
@@ -134,11 +143,15 @@ def test_blocks(ctx: Context, pt: PreparedTest, stage: str, duration_s: float) -
     points = [ctx.p] + ([scorer.reset_start(ctx.p)] if scorer.reset else [])
     jacs, sigs, rival_jacs = [], [], []
     qs = ctx.stage_questions(stage)
+    prob = scorer.problem(scorer.stage_free, ctx.p)
+    # the signature questions' rows: the readings are functions of the model's own signals
+    readings = {q.key: signature_rows(q, prob, pt, residual_data(pt, ctx.p))
+                for q in qs if q.signature is not None}
     for point in points:
         jac = refit_jacobian(scorer, point)
         jacs.append({n: jac[:, i] for i, n in enumerate(scorer.stage_free)})
         sig = np.zeros((len(qs), jac.shape[0]))
-        sizes = [i for i, q in enumerate(qs) if q.rival is None]
+        sizes = [i for i, q in enumerate(qs) if not q.competing]
         if sizes:
             sig[sizes] = effect_signals(scorer, point, np.stack(
                 [qs[i].models(point, model)[1] for i in sizes]))
@@ -146,9 +159,15 @@ def test_blocks(ctx: Context, pt: PreparedTest, stage: str, duration_s: float) -
         for i, q in enumerate(qs):
             if q.rival is not None:
                 sig[i], rival_jacs[-1][q.key] = _rival_blocks(ctx, scorer, q, point)
+            elif q.signature is not None:
+                sig[i], cols = readings[q.key]
+                rival_jacs[-1][q.key] = np.hstack([jac, cols])
         sigs.append(sig)
+    channels = list(pt.measured)
+    costs_of = {ch: 0.5 * float(np.sum((r * prob._weights(pt, ch)) ** 2))
+                for ch, r in zip(channels, res, strict=True)}
     return TestBlocks(pt.id, stage, duration_s, len(jac), float(costs[0]), res, jacs, sigs,
-                      rival_jacs)
+                      rival_jacs, channels, costs_of)
 
 
 def refit_rival(ctx: Context, q: Question, tests: list[PreparedTest]) -> Question:
@@ -183,7 +202,7 @@ def calibrate_rivals(ctx: Context, logged: dict[str, list[str]]) -> None:
     """
     before = _all_scores(ctx, logged)
     for q in ctx.questions:
-        if q.rival is None or q.observed_share is None or q.key not in before:
+        if not q.competing or q.observed_share is None or q.key not in before:
             continue
         z_pred = float(np.sqrt(max(-before[q.key][1], 0.0))) / 2.0
         z_obs = max(float(norm.ppf(min(q.observed_share, 0.999))), MIN_OBSERVED_Z)
@@ -224,13 +243,25 @@ def score(ctx: Context, stage: str, blocks: list[TestBlocks]) -> list[tuple[floa
         sig = np.hstack([b.signals[k] for b in blocks])
         e = _left_energy(sig, jac)
         for i, q in enumerate(qs):
-            if q.rival is not None:
+            if q.competing:
                 own = np.vstack([b.rival_jacobians[k][q.key] for b in blocks])
                 e[i] = _left_energy(sig[i:i + 1], own)[0]
         energy = np.fmax(energy, e)
-    return [predicted_score(cost, 0.0 if np.isnan(e) else float(e), n_eff,
-                            0 if q.rival is not None else len(q.spec.free))
-            for q, e in zip(qs, energy, strict=True)]
+    out = []
+    for q, e in zip(qs, energy, strict=True):
+        c, n = cost, n_eff
+        if q.signature is not None:  # judged on its channel, as the unexplained round is
+            c, n = _channel_cost(blocks, q.signature.channel)
+        out.append(predicted_score(c, 0.0 if np.isnan(e) else float(e), n, q.free_count))
+    return out
+
+
+def _channel_cost(blocks: list[TestBlocks], channel: str) -> tuple[float, float]:
+    """One channel's cost over a set of tests, and its effective samples."""
+    cost = sum(b.channel_costs.get(channel, 0.0) for b in blocks)
+    res = [r for b in blocks for ch, r in zip(b.channels, b.residuals, strict=True)
+           if ch == channel]
+    return cost, effective_samples(res) if res else 0.0
 
 
 @dataclass

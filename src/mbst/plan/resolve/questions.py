@@ -12,11 +12,16 @@ A *rival question* is a finding and a look-alike discovery did not rule out
 the resamples): "which of the two does the rig have?" Its two models are the
 extended model as discovery left it and the same model with the named effect
 off and the rival at the size its refit reached.
+
+A *signature question* is an unexplained finding's channel read two ways
+(``plan/resolve/signatures.py``): "does the structure follow this quantity or
+that one?" It carries its fitted reading (``signature``) and no catalogue pair.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -30,9 +35,10 @@ class ResolveError(ValueError):
 
 @dataclass
 class Question:
-    """One catalogue pair at one size, with what the campaign predicts of it."""
+    """One catalogue pair at one size, a finding against a look-alike, or an unexplained
+    finding's two readings; with what the campaign predicts of it."""
 
-    spec: EffectSpec
+    spec: EffectSpec | None  # None for a signature question
     stage: str
     values: dict[str, float]  # model parameter -> value at the size asked
     reason: str
@@ -47,12 +53,42 @@ class Question:
     observed_share: float | None = None
     # the likelihood ratio the design must reach for this rival (design.calibrate_rivals)
     lr_needed: float | None = None
+    # a signature question: the fitted reading (``signatures.Reading``)
+    signature: Any = None
+
+    @property
+    def competing(self) -> bool:
+        """Two models that both explain the stage: only their separation is judged."""
+        return self.rival is not None or self.signature is not None
+
+    @property
+    def effect(self) -> str:
+        return "unexplained" if self.spec is None else self.spec.effect
+
+    @property
+    def component(self) -> str:
+        return self.signature.channel if self.spec is None else self.spec.component
+
+    @property
+    def rival_key(self) -> str | None:
+        if self.signature is not None:
+            return self.signature.rival
+        return self.rival.key if self.rival is not None else None
+
+    @property
+    def free_count(self) -> int:
+        """Parameters the question's effect adds (0 for two competing models)."""
+        return 0 if self.competing else len(self.spec.free)
 
     @property
     def key(self) -> str:
+        if self.signature is not None:
+            return self.signature.key(self.stage)
         return self.spec.key if self.rival is None else f"{self.spec.key}|{self.rival.key}"
 
     def label(self) -> str:
+        if self.signature is not None:
+            return f"{self.signature.label()}, on {self.stage}"
         if self.rival is not None:
             return (f"{self.spec.effect} in {self.spec.component} or {self.rival.effect} in "
                     f"{self.rival.component}")

@@ -16,6 +16,7 @@ from mbst.identify.fitting import simulate_twin
 from mbst.io.outputs import atomic_text, write_json, write_markdown
 from mbst.plan.resolve.design import SAFETY, score
 from mbst.plan.resolve.run import NEEDED_UP_TO, ResolveResult
+from mbst.plan.resolve.signatures import reading_curves
 
 
 def campaign_template(res: ResolveResult) -> dict:
@@ -43,8 +44,8 @@ def _question_rows(res: ResolveResult) -> list[dict]:
     for q in res.questions:
         b = res.before.get(q.key, (0.0, 0.0))
         a = res.after.get(q.key, b)
-        rows.append({"effect": q.spec.effect, "component": q.spec.component, "stage": q.stage,
-                     "rival": q.rival.key if q.rival is not None else None,
+        rows.append({"effect": q.effect, "component": q.component, "stage": q.stage,
+                     "rival": q.rival_key, "question": q.label(),
                      "reason": q.reason, "size": q.headline,
                      "aic_drop_needed": res.margins.drop(q),
                      "share_before": b[0], "aic_delta_before": b[1],
@@ -52,6 +53,9 @@ def _question_rows(res: ResolveResult) -> list[dict]:
                      "share_after": a[0], "aic_delta_after": a[1],
                      "resolved_after": res.margins.clears(q, *a),
                      "test_time_needed_s": res.needed.get(q.key),
+                     # a look-alike or a rival reading: the share of resamples (folds) in
+                     # which the campaign already preferred the finding
+                     "observed_share": q.observed_share,
                      "discovery_predicted_before": list(q.before) if q.before else None})
     return rows
 
@@ -69,8 +73,8 @@ def candidate_table(res: ResolveResult) -> pd.DataFrame:
                                    strict=True):
             rows.append({"candidate": c.id, "scenario": c.scenario, "duration_s": c.duration_s,
                          "input": yaml.safe_dump(c.input, default_flow_style=True).strip(),
-                         "effect": q.spec.effect, "component": q.spec.component,
-                         "rival": q.rival.key if q.rival is not None else "",
+                         "effect": q.effect, "component": q.component,
+                         "rival": q.rival_key or "",
                          "predicted_share": share, "predicted_aic_delta": aic})
     return pd.DataFrame(rows)
 
@@ -93,6 +97,14 @@ def resolve_record(res: ResolveResult, discovery: str) -> dict:
     }
 
 
+def _pair(r: dict) -> str:
+    """A question's row label: the pair, a finding or its look-alike, or two readings."""
+    if r["effect"] == "unexplained":
+        return r["question"]
+    return f"{r['effect']} in {r['component']}" + (
+        f" or {r['rival'].replace(':', ' in ')}" if r["rival"] else "")
+
+
 def _fmt_size(size: dict) -> str:
     return ", ".join(f"{k} {v:.4g}" for k, v in size.items())
 
@@ -106,13 +118,15 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
              "the needed drop). A rival question (*A or B*) is a finding and a look-alike "
              "discovery did not rule out: the share and ΔAIC are what the look-alike's refit "
              "leaves of the finding's signal, and it is decided when the finding would win "
-             "in 95 % of resamples (ΔAIC ≤ −10.8). The design aims at "
+             "in 95 % of resamples (ΔAIC ≤ −10.8). A signature question is an unexplained "
+             "finding's structure read two ways (two quantities it may follow, `signatures.py`): "
+             "the share and ΔAIC are what the rival reading's refit leaves of the best "
+             "reading's learned term, on that channel's cost. The design aims at "
              f"{SAFETY}× the margins. Method: `src/mbst/plan/resolve/design.py`.", "",
              "| pair | size | why asked | share before | ΔAIC before | share after | "
              "ΔAIC after | ΔAIC needed | decided after |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rec["questions"]:
-        pair = f"{r['effect']} in {r['component']}" + (
-            f" or {r['rival'].replace(':', ' in ')}" if r["rival"] else "")
+        pair = _pair(r)
         lines.append(f"| {pair} | {_fmt_size(r['size'])} | "
                      f"{r['reason']} | {100 * r['share_before']:.1f} % | "
                      f"{r['aic_delta_before']:.1f} | {100 * r['share_after']:.1f} % | "
@@ -137,16 +151,17 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
                   "test alone would give):", ""]
         for r in undecided:
             t = r["test_time_needed_s"]
-            lines.append(f"- {r['effect']} in {r['component']}"
-                         + (f" or {r['rival'].replace(':', ' in ')}" if r["rival"] else "")
-                         + ": " + (
+            lines.append(f"- {_pair(r)}: " + (
                 f"decided after {t:.0f} s of added tests (the same greedy choice, "
                 "past the budget)" if t is not None else
-                f"not within {NEEDED_UP_TO:g}× the campaign's test time: a refit of the "
-                "stage's parameters takes over most of its signal in every candidate, so a "
-                "cut-out, an input beyond the campaign's rate or amplitude, or a sensor this "
-                "step does not offer would be needed — or the effect is below what this rig "
-                "can show"))
+                f"not within {NEEDED_UP_TO:g}× the campaign's test time: " + (
+                    "the rival reading follows the structure in every candidate as well (the "
+                    "tests move the two quantities together), so a cut-out or an input this "
+                    "step does not offer would be needed" if r["effect"] == "unexplained" else
+                    "a refit of the stage's parameters takes over most of its signal in every "
+                    "candidate, so a cut-out, an input beyond the campaign's rate or "
+                    "amplitude, or a sensor this step does not offer would be needed — or the "
+                    "effect is below what this rig can show")))
     for n in res.notes:
         lines += ["", f"Note: {n}"]
     if not res.questions:
@@ -157,6 +172,21 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
     for f in failures:
         lines += ["", f"**Failed:** {f}"]
     return "\n".join(lines) + "\n"
+
+
+def _responses(res: ResolveResult, q, pt) -> tuple[tuple[str, str], dict]:
+    """The two models' predicted responses of ``q`` on the predicted test ``pt``, per channel,
+    and their names: (without, with) the effect, (rival, named), or for a signature question
+    the rival reading's best fit to the best reading's learned term, and that term."""
+    if q.signature is not None:
+        term, fit = reading_curves(q, pt, res.context.p)
+        r = q.signature
+        return (f"{r.rival} (its best fit)", f"{r.group}: learned term"), \
+            {r.channel: (fit, term)}
+    y0, y1 = (simulate_twin(pt, p) for p in q.models(res.context.p, pt.model))
+    names = ((f"{q.rival.effect} in {q.rival.component}", "named: " + q.spec.effect)
+             if q.rival is not None else ("without", f"with {q.spec.effect}"))
+    return names, {ch: (y0[ch], y1[ch]) for ch in pt.measured}
 
 
 def question_figure(res: ResolveResult, path: Path) -> None:
@@ -171,34 +201,34 @@ def question_figure(res: ResolveResult, path: Path) -> None:
             if c.scenario != q.stage:
                 continue
             pt = res.predicted[c.id]
-            y0, y1 = (simulate_twin(pt, p) for p in q.models(res.context.p, pt.model))
-            for ch in pt.measured:
-                diff_rms = float(np.sqrt(np.mean((y1[ch] - y0[ch]) ** 2)))
+            names, curves = _responses(res, q, pt)
+            for ch, (y0, y1) in curves.items():
+                diff_rms = float(np.sqrt(np.mean((y1 - y0) ** 2)))
                 snr = diff_rms / max(pt.noise.get(ch, 0.0), 1e-12)
                 if best is None or snr > best[0]:
-                    best = (snr, c, pt, ch, y0[ch], y1[ch])
-        if best is None:
-            continue
-        snr, c, pt, ch, y0, y1 = best
-        names = ((f"{q.rival.effect} in {q.rival.component}", "named: " + q.spec.effect)
-                 if q.rival is not None else ("without", f"with {q.spec.effect}"))
-        ax[0].plot(pt.time_s, y0, lw=1, label=names[0])
-        ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=names[1])
-        ax[0].set_title(f"{q.label()}\n{c.id}", fontsize=8)
-        ax[0].set_ylabel(ch, fontsize=8)
-        ax[0].legend(fontsize=7)
-        sigma = pt.noise.get(ch, 0.0)
-        ax[1].plot(pt.time_s, y1 - y0, lw=1, color="C3", label=f"{names[1]} − {names[0]}")
-        ax[1].axhspan(-2 * sigma, 2 * sigma, color="0.85", label="±2σ sensor noise (filtered)")
-        ax[1].set_title(f"difference, rms {snr:.1f}× the sensor noise", fontsize=9)
-        ax[1].legend(fontsize=7)
-        for a in ax:
-            a.set_xlabel("time (s)", fontsize=8)
-            a.tick_params(labelsize=7)
+                    best = (snr, c, pt, ch, y0, y1, names)
+        if best is not None:
+            _draw_question(ax, q, *best)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _draw_question(ax, q, snr, c, pt, ch, y0, y1, names) -> None:
+    ax[0].plot(pt.time_s, y0, lw=1, label=names[0])
+    ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=names[1])
+    ax[0].set_title(f"{q.label()}\n{c.id}", fontsize=8)
+    ax[0].set_ylabel(ch if q.signature is None else f"learned term in {ch}", fontsize=8)
+    ax[0].legend(fontsize=7)
+    sigma = pt.noise.get(ch, 0.0)
+    ax[1].plot(pt.time_s, y1 - y0, lw=1, color="C3", label=f"{names[1]} − {names[0]}")
+    ax[1].axhspan(-2 * sigma, 2 * sigma, color="0.85", label="±2σ sensor noise (filtered)")
+    ax[1].set_title(f"difference, rms {snr:.1f}× the sensor noise", fontsize=9)
+    ax[1].legend(fontsize=7)
+    for a in ax:
+        a.set_xlabel("time (s)", fontsize=8)
+        a.tick_params(labelsize=7)
 
 
 def write_resolve(out: Path, res: ResolveResult, discovery: str) -> None:

@@ -25,6 +25,7 @@ from mbst.plan.resolve.design import (
     time_needed,
 )
 from mbst.plan.resolve.questions import Question, ResolveError, open_questions
+from mbst.plan.resolve.signatures import signature_questions
 from mbst.systems.eps.channels import SYSTEM_NAME
 
 DISCOVERY_FORMAT = "mbst-discovery/2"
@@ -143,6 +144,8 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     p = model.vector_from({k: v for k, v in record["vector"].items() if k in model.param_index})
     ids = [prepare_test(campaign, s, st["tau_s"]) for s in campaign.identification_tests()]
     questions, notes = open_questions(record, model, targets or [])
+    readings, read_notes = signature_questions(record, campaign, ids, p)
+    questions, notes = questions + readings, notes + read_notes
     ctx = Context(p, channel_scales(ids), st["stage_free"], st["compensating"], st["decimate"],
                   questions, margins)
     ctx.questions = questions = [q if q.rival is None else
