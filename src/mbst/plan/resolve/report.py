@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -218,7 +219,7 @@ def question_figure(res: ResolveResult, path: Path) -> None:
 def _draw_question(ax, q, snr, c, pt, ch, y0, y1, names) -> None:
     ax[0].plot(pt.time_s, y0, lw=1, label=names[0])
     ax[0].plot(pt.time_s, y1, lw=1, ls="--", label=names[1])
-    ax[0].set_title(f"{q.label()}\n{c.id}", fontsize=8)
+    ax[0].set_title("\n".join([*textwrap.wrap(q.label(), 70), c.id]), fontsize=8)
     ax[0].set_ylabel(ch if q.signature is None else f"learned term in {ch}", fontsize=8)
     ax[0].legend(fontsize=7)
     sigma = pt.noise.get(ch, 0.0)
