@@ -333,3 +333,16 @@ def test_an_unexplained_findings_open_reading_is_decided_by_a_designed_test(tmp_
     page = (out / "resolve.md").read_text()
     assert "periodic:motor_angle_rad (order" in page and "or periodic:pinion_angle_rad" in page
     assert "the rival reading follows the structure in every candidate" in page
+
+
+def test_a_failure_in_the_readings_costs_the_catalogues_questions_nothing(
+        stribeck_column, tmp_path, monkeypatch):
+    camp, _, base = stribeck_column
+    disc = _record(camp, base, tmp_path / "disc")
+
+    def broken(*_):
+        raise ValueError("no such group")
+    monkeypatch.setattr("mbst.plan.resolve.run.signature_questions", broken)
+    res = resolve(disc, budget_share=1.0)
+    assert [q.key for q in res.questions] == ["stribeck_friction:steering_column"]
+    assert any("readings were not asked: ValueError: no such group" in n for n in res.notes)

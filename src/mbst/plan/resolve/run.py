@@ -144,7 +144,11 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     p = model.vector_from({k: v for k, v in record["vector"].items() if k in model.param_index})
     ids = [prepare_test(campaign, s, st["tau_s"]) for s in campaign.identification_tests()]
     questions, notes = open_questions(record, model, targets or [])
-    readings, read_notes = signature_questions(record, campaign, ids, p)
+    try:
+        readings, read_notes = signature_questions(record, campaign, ids, p)
+    except Exception as exc:  # the catalogue's questions never hang on the readings'
+        readings, read_notes = [], [f"the unexplained finding's readings were not asked: "
+                                    f"{type(exc).__name__}: {exc}"]
     questions, notes = questions + readings, notes + read_notes
     ctx = Context(p, channel_scales(ids), st["stage_free"], st["compensating"], st["decimate"],
                   questions, margins)
