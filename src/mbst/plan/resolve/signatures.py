@@ -32,7 +32,8 @@ from scipy.stats import norm
 from mbst.core.family import get_system
 from mbst.discovery.acceptance import SEPARATED_SHARE
 from mbst.discovery.data import TestResidual, residual_data
-from mbst.discovery.signature import feature_groups
+from mbst.discovery.rounds.unexplained import places_step, running_order_places
+from mbst.discovery.signature import SAMPLES_PER_TEST, feature_groups
 from mbst.identify.fitting import FitProblem, PreparedTest
 from mbst.io.campaign import Campaign
 from mbst.plan.resolve.questions import Question
@@ -172,10 +173,6 @@ class _ChannelData:
         return at
 
 
-# samples per test kept for the readings' fits (the filtered residual is smooth)
-SAMPLES_PER_TEST = 1500
-
-
 def _channel_data(tests: list[TestResidual], channel: str, places: dict[str, float],
                   input_name: str) -> _ChannelData:
     logged = [t for t in tests if channel in t.measured]
@@ -241,8 +238,7 @@ def signature_questions(record: dict, campaign: Campaign, ids: list[PreparedTest
     model = ids[0].model
     input_name = get_system(model.name).input_channel
     order = [s.id for s in campaign.tests]
-    n = max(len(order) - 1, 1)
-    places = {tid: i / n - 0.5 for i, tid in enumerate(order)}  # as discovery places them
+    places = running_order_places(order)  # as discovery places them
     tests = [residual_data(pt, p) for pt in ids]
     questions, notes = [], []
     for f in found:
@@ -251,7 +247,8 @@ def signature_questions(record: dict, campaign: Campaign, ids: list[PreparedTest
                 continue
             data = _channel_data(tests, rec["channel"], places, input_name)
             base = {"scenarios": tuple(dict.fromkeys(t.scenario for t in data.tests)),
-                    "input_name": input_name, "places": places, "next_place": 0.5 + 1.0 / n}
+                    "input_name": input_name, "places": places,
+                    "next_place": 0.5 + places_step(order)}
             readings = _readings(data, rec, base)
             open_ = [r for r in readings if norm.cdf(r.observed_z) < SEPARATED_SHARE]
             if not open_:
@@ -273,9 +270,9 @@ def signature_rows(q: Question, prob: FitProblem, pt: PreparedTest, t: TestResid
     residual layout (channels stacked, decimated, weighted as the fit weighs them)."""
     r = q.signature
     ch = r.channel
-    if ch not in pt.measured:
+    if ch not in pt.measured:  # zero rows, as many columns as on a test that logs it
         rows = len(prob._res_of_twin(pt, pt.measured))
-        return np.zeros(rows), np.zeros((rows, 0))
+        return np.zeros(rows), np.zeros((rows, r.rival_width + 1))
 
     def rows_of(x: np.ndarray) -> np.ndarray:
         return prob._res_of_twin(pt, {**pt.measured, ch: pt.measured[ch] + x})
