@@ -165,3 +165,48 @@ def test_each_grid_point_is_integrated_at_the_step_it_needs_itself(tmp_path):
     env = StageEnvelope([pt], "free_tie_rods")
     together = env.misfits(ps)
     np.testing.assert_array_equal(together[1], env.misfits(ps[1:])[0])
+
+
+def _residual(test_id: str, motor_speed: np.ndarray, rack_speed: np.ndarray):
+    from mbst.discovery.data import TestResidual
+
+    t = np.arange(len(motor_speed)) * 1e-3
+    return TestResidual(id=test_id, scenario="free_tie_rods", role="identification",
+                        motor="off", dt_s=1e-3, time_s=t, angle_rad=t, omega_rad_per_s=t,
+                        measured={}, simulated={},
+                        states={"motor_speed_rad_per_s": motor_speed,
+                                "rack_speed_m_per_s": rack_speed})
+
+
+def _finding(effect: str, component: str, confidence: float):
+    from mbst.discovery.state import Finding
+
+    return Finding(effect=effect, component=component, parameters={"static_to_coulomb_ratio":
+                                                                   1.5}, confidence=confidence,
+                   evidence="named", stage="free_tie_rods", relative_gain=0.1,
+                   aic_delta=None, cv={})
+
+
+def test_one_effect_named_in_two_parts_of_one_body_is_one_finding():
+    """Realistic rig 602: the output-error test named a rack Stribeck in the motor (0.037)
+    and the stick-slip test in the rack (0.45); motor and rack move as one body through the
+    stiff mesh, so the answer is one Stribeck finding that names both parts."""
+    from mbst.discovery.acceptance import fold_one_body
+    from mbst.systems.eps.model import EPS_MODEL
+
+    w = np.sin(np.linspace(0, 20, 4000))
+    one_body = [_residual("a", 16.0 / 0.0075 * w, w), _residual("b", 16.0 / 0.0075 * w, w)]
+    motor = _finding("stribeck_friction", "motor", 0.037)
+    rack = _finding("stribeck_friction", "rack", 0.45)
+    other = _finding("asymmetric_friction", "motor", 0.6)
+    out = fold_one_body([motor, other, rack], one_body, EPS_MODEL)
+    assert [(f.effect, f.component) for f in out] == [("asymmetric_friction", "motor"),
+                                                      ("stribeck_friction", "rack")]
+    assert out[1].indistinguishable_from == ["motor"]
+    assert "ONE BODY" in out[1].evidence and "0.04" in out[1].evidence
+    assert out[1].confidence == 0.45
+    # parts that move apart (a rack-pinion gap, a soft mesh) keep their own findings
+    apart = [_residual("a", 16.0 / 0.0075 * w, np.cos(np.linspace(0, 33, 4000)))]
+    out = fold_one_body([_finding("stribeck_friction", "motor", 0.037),
+                         _finding("stribeck_friction", "rack", 0.45)], apart, EPS_MODEL)
+    assert [f.component for f in out] == ["motor", "rack"]

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mbst.discovery.acceptance import fold_one_body
 from mbst.discovery.compare import Learned, compare, mean_gain
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.evidence.collect import neural_evidence, sparse_evidence
@@ -201,7 +202,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         timings["neural_s"] = neural_ev.get("train_seconds") or 0.0
         timings["neural_wait_s"] = time.perf_counter() - t0
     findings = [proposal_finding(p, state, sparse_ev, neural_ev) for p in state.proposals]
-    findings += state.findings
+    findings = fold_one_body(findings + state.findings, state.residuals, model)
     try:
         judge_catalogue_names(findings, state)
     except Exception as exc:  # a check on the names must never sink them
