@@ -255,20 +255,22 @@ def fold_one_body(findings: list[Finding], residuals: list[TestResidual],
     of the fast envelope); two names would say two effects where these tests see one.
     The model keeps both terms; the folded finding says so.
     """
+    def one_body(g: Finding, f: Finding) -> bool:
+        tests = [r for r in residuals if r.scenario == f.stage and r.role == "identification"]
+        return abs(_speeds_correlation(g.component, f.component, tests, model)) \
+            >= TIE_SPEED_CORRELATION
+
     out: list[Finding] = []
     for f in sorted(findings, key=lambda f: -f.confidence):
         same = next((g for g in out if g.effect == f.effect and g.effect != "unexplained"
                      and g.stage == f.stage and g.component != f.component
-                     and abs(_speeds_correlation(
-                         g.component, f.component,
-                         [r for r in residuals
-                          if r.scenario == f.stage and r.role == "identification"], model))
-                     >= TIE_SPEED_CORRELATION), None)
+                     and one_body(g, f)), None)
         if same is None:
             out.append(f)
             continue
-        if f.component not in same.indistinguishable_from:
-            same.indistinguishable_from.append(f.component)
+        for c in [f.component, *f.indistinguishable_from]:
+            if c != same.component and c not in same.indistinguishable_from:
+                same.indistinguishable_from.append(c)
         sizes = ", ".join(f"{k} {v:.3g}" for k, v in f.parameters.items())
         same.evidence += (f"; ONE BODY: {f.effect} in {f.component} was named too ({sizes}, "
                           f"confidence {f.confidence:.2f}, {100 * f.relative_gain:.1f} % by "

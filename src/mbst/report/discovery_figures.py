@@ -224,7 +224,7 @@ def stick_slip(result, path: Path) -> bool:
     # the twins are driven by the measured input: its sensor noise, through a stiff part
     # (the torsion bar of a blocked column), shows in their fast part and the measured
     # output's does not; the test's base misfit carries it alike for every candidate
-    plots._style(axes[0], f"{pt.id}: {label_of(ch)} above {stickslip.HIGHPASS_HZ:g} Hz "
+    plots._style(axes[0], f"{pt.id}: {label_of(ch)} above {stickslip.HIGHPASS_HZ:g} Hz\n"
                  "(where a stick-slip sawtooth shows; its phase is not repeatable; the "
                  "twins carry the measured input's noise)", label_of(ch), "")
     verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
