@@ -279,3 +279,45 @@ def test_angle_noise_does_not_bias_the_column_friction(tmp_path):
     p = run_cascade(camp, IdentifySettings(), base=truth, only=only).params
     i = PARAM_INDEX["steering_column.coulomb_nm"]
     assert p[i] == pytest.approx(truth[i], rel=0.05)
+
+
+def test_a_fragment_that_never_turns_back_is_not_read_as_the_friction_loop(tmp_path):
+    """An independent campaign held a 0.24-s start of a free tie-rods sine (0.2° of motion
+    under a 13-bit encoder): as the slowest test its "loop", read from the noise, set the
+    rack's Coulomb bound to 3 N and the control torque FIT fell from 96 to 36 %. The loop
+    now comes from the slowest test that goes both ways through its range."""
+    from mbst.identify.fitting import prepare_test
+    from mbst.io.campaign import write_campaign
+    from mbst.systems.eps.bench import compact_plan
+    from mbst.systems.eps.model import pre_identify, reversals
+    from mbst.systems.eps.realism import BenchRealism
+
+    recipe = BenchRecipe(effects=[], plan=compact_plan(), seed=700,
+                         realism=BenchRealism.realistic())
+    camp = read_campaign(run_bench(tmp_path / "bench", recipe))
+    tests = [(s, camp.frame(s.id)) for s in camp.tests]
+    spec, frame = next((s, f) for s, f in tests if s.scenario == "free_tie_rods")
+    fragment = spec.__class__(**{**spec.__dict__, "id": "fragment",
+                                 "file": "tests/fragment.csv"})
+    tests.append((fragment, frame.iloc[:120].reset_index(drop=True)))
+    both = read_campaign(write_campaign(tmp_path / "with", name="fragment",
+                                        system="eps-column-assist", known=camp.known,
+                                        tests=tests))
+    p0 = recipe.true_params()
+
+    def preid(c):
+        return pre_identify(c, [prepare_test(c, s, 0.005) for s in c.tests
+                                if s.role == "identification"], p0.copy())
+
+    alone, with_fragment = preid(camp), preid(both)
+    assert with_fragment["hysteresis_free_tie_rods"]["test"] != "fragment"
+    assert with_fragment["upper"] == pytest.approx(alone["upper"])
+    assert with_fragment["values"] == pytest.approx(alone["values"])
+    # the counter itself: a noisy, quantised sine turns back at each peak, a still
+    # angle under the same sensor never
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 4.0, 0.002)
+    q = 2 * np.pi / 2**13
+    noisy = lambda x: np.round((x + 8.7e-4 * rng.standard_normal(len(t))) / q) * q  # noqa: E731
+    assert reversals(noisy(0.5 * np.sin(2 * np.pi * 1.0 * t)), 8 * 8.7e-4) == 8  # 4 cycles
+    assert reversals(noisy(np.zeros_like(t)), 8 * 8.7e-4) == 0

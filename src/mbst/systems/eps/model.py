@@ -16,6 +16,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 from mbst.core.filtering import INPUT_WINDOW_S, cubic_window, white_noise_std
 from mbst.core.model import ModelDefinition
 from mbst.core.threads import run_longest_first
+from mbst.io.campaign import CampaignError
 from mbst.systems.eps import assist as eps_assist
 from mbst.systems.eps import boost_curve as eps_boost_curve
 from mbst.systems.eps import kernel as K
@@ -213,6 +214,51 @@ def _loop_half_width(pt: PreparedTest) -> float | None:
     return float(abs(coef[1]))
 
 
+def reversals(angle: np.ndarray, least_rad: float = 0.0, share: float = 0.2) -> int:
+    """How often the angle turns back by more than ``share`` of its range and more than
+    ``least_rad``: a sensor's noise and quantisation steps are not a reversal."""
+    h = max(share * float(np.ptp(angle)), least_rad)
+    if h <= 0:
+        return 0
+    lo = hi = float(angle[0])
+    direction, count = 0, 0
+    for a in np.asarray(angle, dtype=float):
+        if a > hi:
+            hi = a
+        if a < lo:
+            lo = a
+        if direction >= 0 and hi - a > h:  # turned down
+            count += direction == 1
+            direction, lo = -1, a
+        elif direction <= 0 and a - lo > h:  # turned up
+            count += direction == -1
+            direction, hi = 1, a
+    return count
+
+
+def _angle_resolution(campaign: Campaign, pt: PreparedTest) -> float:
+    """The logged angle's noise and quantum: the larger of its white-noise level and its
+    smallest step."""
+    try:
+        raw = campaign.frame(pt.id)["steering_angle_rad"].to_numpy(float)
+    except (KeyError, CampaignError):  # a test the campaign does not log (a planned one)
+        raw = pt.angle_in_rad
+    steps = np.abs(np.diff(raw))
+    steps = steps[steps > 0]
+    return max(white_noise_std(raw, pt.dt_s), float(steps.min()) if steps.size else 0.0)
+
+
+def _slowest_loop(campaign: Campaign, tests: list[PreparedTest]) -> PreparedTest | None:
+    """The slowest test that goes both ways through its range (two reversals, each by more
+    than eight times the angle's noise): friction with the least inertia and viscous torque.
+    A test that never turns back has no loop to read; the slowest by its top speed was then
+    a fragment (a 0.24-s start of a sine, 0.2° of motion: its "loop", read from the noise,
+    put the rack's Coulomb bound at 3 N and the control torque FIT from 96 to 36 %)."""
+    looped = [pt for pt in tests
+              if reversals(pt.angle_in_rad, 8.0 * _angle_resolution(campaign, pt)) >= 2]
+    return min(looped, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)), default=None)
+
+
 def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -> dict:
     """Starting values and friction bounds from simple signal processing.
 
@@ -256,9 +302,11 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
     # without the free tie-rods cut-out, free wheels (suspended) are the least loaded
     ft = ([pt for pt in passive if pt.scenario == "free_tie_rods"]
           or [pt for pt in passive if pt.scenario == "suspended"])
-    if ft:
-        # the slowest test shows friction with the least inertia and viscous torque
-        slow = min(ft, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+    slow = _slowest_loop(campaign, ft)
+    if ft and slow is None:
+        out["notes"].append("no free tie-rods test goes both ways through its range: "
+                            "friction starts and bounds left at their defaults")
+    if slow is not None:
         ab = _loop_half_width(slow)
         if ab is not None:
             budget = max(ab - (col_fc or 0.0), 0.05 * ab)
@@ -286,8 +334,8 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
                     f"{100 * (slope / r - 1):+.0f} % from the known pinion radius {r:.3e} m"
                 )
     tg = [pt for pt in passive if pt.scenario == "tires_on_ground"]
-    if tg and ft:
-        slow3 = min(tg, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+    slow3 = _slowest_loop(campaign, tg)
+    if slow3 is not None and slow is not None:
         ab3 = _loop_half_width(slow3)
         ab2 = out.get("hysteresis_free_tie_rods", {}).get("half_width_nm")
         if ab3 is not None and ab2 is not None and ab3 > ab2:
