@@ -343,7 +343,7 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
             out["hysteresis_tires_on_ground"] = {"test": slow3.id, "half_width_nm": ab3,
                                                  "tires_coulomb_start_n": (ab3 - ab2) / r}
     if any(pt.spec.motor == "assist" for pt in tests):
-        _pre_identify_assist(tests, p, out, col_fc or 0.0,
+        _pre_identify_assist(campaign, tests, p, out, col_fc or 0.0,
                              out["values"].get("offset.steering_torque_nm", 0.0))
     return out
 
@@ -418,8 +418,8 @@ def fit_characteristic(t_tb: np.ndarray, a: np.ndarray, family: str) -> dict[str
     return dict(zip(eps_assist.CURVE, (float(v) for v in fr.x)))
 
 
-def _pre_identify_assist(tests: list[PreparedTest], p: np.ndarray, out: dict, col_fc: float,
-                         torque_offset_nm: float) -> None:
+def _pre_identify_assist(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray,
+                         out: dict, col_fc: float, torque_offset_nm: float) -> None:
     """Seed 001 Table 1 with the engine on: friction bounds and the curve's start."""
     family = "hps" if p[PARAM_INDEX["assist.family"]] == 1.0 else "eps"
     passive = [pt for pt in tests if pt.spec.motor != "assist"]
@@ -429,10 +429,12 @@ def _pre_identify_assist(tests: list[PreparedTest], p: np.ndarray, out: dict, co
     for scen in sorted({pt.scenario for pt in powered}):
         offs = [pt for pt in passive if pt.scenario == scen]
         ons = [pt for pt in powered if pt.scenario == scen]
-        slow_on = min(ons, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+        slow_on = _slowest_loop(campaign, ons)
+        if slow_on is None:
+            continue
         rec = {"engine_on_test": slow_on.id, "half_width_on_nm": _loop_half_width(slow_on)}
-        if offs:
-            slow_off = min(offs, key=lambda pt: np.max(np.abs(pt.omega_rad_per_s)))
+        slow_off = _slowest_loop(campaign, offs)
+        if slow_off is not None:
             rec.update(engine_off_test=slow_off.id, half_width_off_nm=_loop_half_width(slow_off))
         bounds[scen] = rec
     out["assist_friction_bounds"] = bounds
