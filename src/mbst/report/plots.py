@@ -61,7 +61,8 @@ def _style(ax, title: str, ylabel: str, xlabel: str = "time [s]") -> None:
 
 def _finish(fig, axes, path: Path) -> None:
     """Legend in the first cell (the styles repeat in every cell), then save."""
-    axes[0][0].legend(fontsize=8)
+    if axes[0][0].get_legend_handles_labels()[0]:  # an empty figure (no control test) has none
+        axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
 
