@@ -92,6 +92,23 @@ def test_a_prior_is_fitted_and_a_wrong_fixed_value_is_reported(tmp_path):
     assert not any("pinion_radius_m" in w and "contradict" in w for w in result.warnings)
 
 
+def test_a_stated_value_of_a_fitted_parameter_is_held_and_checked(tmp_path):
+    """campaign-format.md: a ``known`` number is held fixed. A torsion-bar stiffness stated
+    20 % under the rig's was silently refitted (and the pre-identification's start written
+    over it); now it is held as stated and the data's contradiction is reported."""
+    from mbst.systems.eps.params import PARAM_INDEX
+
+    k_t = BenchRecipe(effects=[]).true_params()[PARAM_INDEX["torsion_bar.stiffness_nm_per_rad"]]
+    camp = _campaign(tmp_path, {"torsion_bar.stiffness_nm_per_rad": float(0.8 * k_t)})
+    checks, result = _checks(camp)
+    assert result.params[PARAM_INDEX["torsion_bar.stiffness_nm_per_rad"]] == 0.8 * k_t
+    assert not any("torsion_bar.stiffness_nm_per_rad" in st.free for st in result.stages)
+    stated = checks["torsion_bar.stiffness_nm_per_rad"]
+    assert stated.contradicted and stated.fitted == pytest.approx(k_t, rel=0.02)
+    assert any("contradict known 'torsion_bar.stiffness_nm_per_rad'" in w
+               for w in result.warnings)
+
+
 def test_exact_known_values_are_not_contradicted(tmp_path):
     checks, result = _checks(_campaign(tmp_path, {}))
     assert checks and not [c.name for c in checks.values() if c.contradicted]

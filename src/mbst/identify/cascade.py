@@ -187,9 +187,12 @@ def run_cascade(
     for scenario, names in prior_stages(model, priors, id_tests).items():
         extra_free[scenario] = tuple(extra_free.get(scenario, ())) + names
     settings = replace(settings, prior={**(settings.prior or {}), **priors}) if priors else settings
+    # a stated value of a parameter the cascade would fit is held as stated
+    # (campaign-format.md); ``check_fixed_known`` then asks the data about it
+    held = {k for k in campaign.known if k in model.param_index and k not in campaign.priors}
     preid = model.pre_identify(campaign, id_tests, p)
     for k, v in preid["values"].items():
-        if only is not None and k not in only:
+        if (only is not None and k not in only) or k in held:
             continue
         spec = model.spec(k)
         p[model.param_index[k]] = float(np.clip(v, spec.lower, spec.upper))
@@ -218,8 +221,8 @@ def run_cascade(
         free = []
         uninformed = []
         for n in dict.fromkeys(wanted):
-            if n in fixed or (only is not None and n not in only
-                              and not n.startswith("offset.")):
+            if n in fixed or n in held or (only is not None and n not in only
+                                           and not n.startswith("offset.")):
                 continue
             if n.startswith("offset.") and model.offset_channels[n] not in channels_here:
                 continue
@@ -229,7 +232,7 @@ def run_cascade(
             free.append(n)
         # an offset seen for the first time here, estimated by a later stage's channels
         for n, ch in model.offset_channels.items():
-            if ch in channels_here and n not in fixed and n not in free:
+            if ch in channels_here and n not in fixed and n not in free and n not in held:
                 free.append(n)
         carried = uninformed + passed_on
         if not free:
