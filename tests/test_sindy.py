@@ -257,3 +257,17 @@ def test_failed_simulation_gives_nan_and_a_reason(backlash):
     odd.scenario, odd.id = "suspended", "odd"
     assert np.all(np.isnan(model.predict(odd)[TORQUE]))
     assert "no model" in model.failures["odd"]
+
+
+def test_a_control_test_the_black_box_cannot_simulate_is_said_in_the_comparison(backlash):
+    """A realistic campaign's SINDy row read "nan" with no word of why: the model's own
+    reason now reaches the comparison's failures (and with them discovery.md)."""
+    from mbst.discovery.compare import _sindy_twins
+
+    ids = [t for t in backlash if t.role == "identification"]
+    odd = copy.deepcopy(next(t for t in backlash if t.role == "control"))
+    odd.scenario, odd.id = "suspended", "odd"
+    failures: list[str] = []
+    twins = _sindy_twins(ids, [odd], failures)
+    assert np.all(np.isnan(twins["odd"][TORQUE]))
+    assert len(failures) == 1 and "odd" in failures[0] and "no model" in failures[0]

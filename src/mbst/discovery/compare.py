@@ -79,7 +79,7 @@ def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
         _optional("physics+learned", lambda: learned.twins(
             [residual_data(pt, p_ext, ext_tw[pt.id]) for pt in controls]), add, failures)
     if settings.wants(base.model, "sparse"):
-        _optional("sindy", lambda: _sindy_twins(id_res, ctrl_res), add, failures)
+        _optional("sindy", lambda: _sindy_twins(id_res, ctrl_res, failures), add, failures)
     if neural_model is not None:
         _optional("neural", lambda: {r.id: neural_model.predict(r) for r in ctrl_res}, add,
                   failures)
@@ -91,11 +91,17 @@ def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
     return Comparison(df, twins, base_correlation, failures)
 
 
-def _sindy_twins(id_res: list[TestResidual], ctrl_res: list[TestResidual]) -> dict:
+def _sindy_twins(id_res: list[TestResidual], ctrl_res: list[TestResidual],
+                 failures: list[str]) -> dict:
+    """The black-box SINDy model open loop on each control test; a test it cannot simulate
+    (it blew up, or no model for its cut-out) has its FIT left blank, and the reason said."""
     from mbst.discovery.evidence.sindy import SindyControlModel
 
     sm = SindyControlModel().fit(id_res)
-    return {r.id: sm.predict(r) for r in ctrl_res}
+    twins = {r.id: sm.predict(r) for r in ctrl_res}
+    failures += [f"control twin of the sindy model on {tid}: {why} (its FIT is left blank)"
+                 for tid, why in sm.failures.items()]
+    return twins
 
 
 def _optional(model: str, twins_of, add, failures: list[str]) -> None:
