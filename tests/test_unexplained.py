@@ -59,6 +59,21 @@ def test_a_channel_that_lags_the_angle_is_described_as_a_lag_of_its_size():
     assert sig.best.quantities()["lag_s"] == pytest.approx(0.012, rel=0.25)
 
 
+
+def test_a_channel_ahead_of_its_twin_is_read_as_a_slow_model_not_a_sensor_delay():
+    """A realistic clean rig's tie-rod forces ran 1 ms ahead of the twin (the rig's friction
+    switches more sharply than the model's): no sensor answers before its input, so the
+    reading says the model is the slow one."""
+    from mbst.discovery.rounds.unexplained import reading
+
+    sig = _describe(_campaign(_lagged(-0.012)))
+    assert sig.structured and sig.best.group == f"lag:{CH}"
+    assert sig.best.quantities()["lag_s"] == pytest.approx(-0.012, rel=0.25)
+    assert reading(sig).startswith(f"the model lags {CH} by 1")
+    assert "sensor's delay" in reading(sig) and "faster than the model" in reading(sig)
+    assert "lags the input that drives the model by 1" in reading(
+        _describe(_campaign(_lagged(0.012))))
+
 def test_a_ripple_in_motor_angle_is_periodic_in_motor_angle_at_its_order():
     sig = _describe(_campaign(lambda t, clean, motor: 0.15 * np.sin(18 * motor)))
     assert sig.structured, sig

@@ -64,8 +64,13 @@ def reading(sig: ChannelSignature) -> str:
     kind, _, quantity = sig.best.group.partition(":")
     q = sig.best.quantities()
     if kind == "lag":
-        return (f"{sig.channel} lags the input that drives the model by "
-                f"{1e3 * q.get('lag_s', 0.0):.1f} ms (a sensor's own filter or a delay)")
+        lag_ms = 1e3 * q.get("lag_s", 0.0)
+        if lag_ms < 0:  # no sensor answers before its input: the twin is the slow one
+            return (f"the model lags {sig.channel} by {-lag_ms:.1f} ms: the rig answers "
+                    "faster than the model (a friction that switches more sharply, a "
+                    "stiffness or an inertia off), not a sensor's delay")
+        return (f"{sig.channel} lags the input that drives the model by {lag_ms:.1f} ms "
+                "(a sensor's own filter or a delay)")
     if kind == "periodic":
         return (f"a ripple in {sig.channel} periodic in {quantity}, "
                 f"{q.get('periods_per_rev', 0):.0f} periods per revolution, "
