@@ -56,7 +56,10 @@ class EffectSpec:
     they shrink (a Dahl stiffness: the presliding displacement is F_c/σ).
     ``other_side_size``: for an effect that acts either way from neutral with another
     shape (a power-law exponent below or above 1), the realistic size on the other
-    side; the resolution step states a detection limit for each side.
+    side; the resolution step states a detection limit for each side. ``level``: the
+    element's Coulomb level a ratio-type size is relative to (a Stribeck rise F_s/F_c, an
+    asymmetry F+/F−); named in a part that moves as one body with another, the finding
+    states the body's size (``discovery/lumped.py``).
     """
 
     effect: str
@@ -68,6 +71,7 @@ class EffectSpec:
     size_parameters: tuple[str, ...] = ()
     inverse_size: tuple[str, ...] = ()
     other_side_size: dict[str, float] = field(default_factory=dict)
+    level: str = ""
 
     @property
     def key(self) -> str:

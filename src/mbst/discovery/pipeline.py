@@ -35,6 +35,7 @@ from mbst.discovery.compare import Learned, compare, mean_gain
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.evidence.collect import neural_evidence, sparse_evidence
 from mbst.discovery.evidence.hybrid import neural_correction
+from mbst.discovery.lumped import state_body_sizes
 from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.rounds.catalogue import proposal_finding, structure_rounds
 from mbst.discovery.rounds.equation_error import equation_error_round
@@ -203,6 +204,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         timings["neural_wait_s"] = time.perf_counter() - t0
     findings = [proposal_finding(p, state, sparse_ev, neural_ev) for p in state.proposals]
     findings = fold_one_body(findings + state.findings, state.residuals, model)
+    state_body_sizes(findings, state.residuals, model, state.p)
     try:
         judge_catalogue_names(findings, state)
     except Exception as exc:  # a check on the names must never sink them

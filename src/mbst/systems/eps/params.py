@@ -235,7 +235,7 @@ def _friction_effects(elem: str) -> list[EffectSpec]:
                     fp("stribeck_friction.stribeck_velocity"): vs},
                    # without the rise at low speed a fit lifts the Coulomb level instead
                    # (tires: 3544 N for a true 2600 N beside a ratio of 1.8)
-                   absorbed_by=(fp("coulomb"),)),
+                   absorbed_by=(fp("coulomb"),), level=fp("coulomb")),
         EffectSpec("presliding_hysteresis", elem,
                    {"stiffness": fp("presliding_hysteresis.stiffness")},
                    (fp("presliding_hysteresis.stiffness"),),
@@ -251,7 +251,7 @@ def _friction_effects(elem: str) -> list[EffectSpec]:
         EffectSpec("asymmetric_friction", elem,
                    {"ratio": fp("asymmetric_friction.ratio")},
                    (fp("asymmetric_friction.ratio"),),
-                   {fp("asymmetric_friction.ratio"): 1.6}),
+                   {fp("asymmetric_friction.ratio"): 1.6}, level=fp("coulomb")),
     ]
     if elem in ("rack", "steering_column"):
         size = 0.08 if elem == "rack" else 0.03
