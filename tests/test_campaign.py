@@ -330,6 +330,29 @@ def test_summary_warns_without_identification(tmp_path):
     assert "WARNING: no identification test" in text
 
 
+
+def test_summary_warns_of_a_test_whose_input_barely_moves(tmp_path):
+    """A control test held at one angle, and a 0.24-s fragment of a sine under a 13-bit
+    encoder (4 steps of it): a model's FIT there reads the noise, and `mbst check` says so
+    before anything is fitted."""
+    camp = build(tmp_path)
+    q = 2 * np.pi / 2**13
+
+    def still(df):
+        df["steering_angle_rad"] = 0.1
+        return df
+
+    def fragment(df):
+        df["steering_angle_rad"] = q * np.round(np.linspace(0.0, 4.0, len(df)))
+        return df
+
+    edit_csv(camp, "s3_ctrl", still)
+    edit_csv(camp, "s2_sine", fragment)
+    text = summarize_campaign(read_campaign(camp))
+    assert "WARNING: test 's3_ctrl'" in text and "stays at one value" in text
+    assert "WARNING: test 's2_sine'" in text and "4.0×" in text
+    assert "WARNING: test 's1_sine'" not in text
+
 # --------------------------------------------------------------------------- campaign.yaml errors
 
 

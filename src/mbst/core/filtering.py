@@ -68,6 +68,15 @@ def white_noise_std(x: np.ndarray, dt_s: float, window_s: float = 0.1) -> float:
     return 1.4826 * float(np.median(np.abs(left - np.median(left)))) / math.sqrt(1.0 - h0)
 
 
+
+def signal_resolution(x: np.ndarray, dt_s: float) -> float:
+    """What a logged signal can resolve: the larger of its white-noise level and its
+    smallest step (a quantised channel at rest has no noise a cubic sees, only steps)."""
+    x = np.asarray(x, float)
+    steps = np.abs(np.diff(x))
+    steps = steps[steps > 0]
+    return max(white_noise_std(x, dt_s), float(steps.min()) if steps.size else 0.0)
+
 def filter_channels(
     channels: dict[str, np.ndarray], dt_s: float, tau_s: float
 ) -> dict[str, np.ndarray]:

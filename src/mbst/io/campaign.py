@@ -28,6 +28,7 @@ import pandas as pd
 import yaml
 
 from mbst.core.family import SystemFamily, get_system, known_systems
+from mbst.core.filtering import signal_resolution
 
 if TYPE_CHECKING:
     from mbst.core.model import ModelDefinition
@@ -749,6 +750,18 @@ def _swap_into_place(tmp: Path, target: Path) -> None:
 # --------------------------------------------------------------------------- summary
 
 
+
+def _barely_moves(x: np.ndarray, dt_s: float) -> str:
+    """A description when the input's range is under ten times what its sensor resolves
+    (noise or quantum); empty otherwise."""
+    res = signal_resolution(x, dt_s)
+    span = float(np.ptp(x))
+    if span <= 0:
+        return "it stays at one value"
+    if span < 10 * res:
+        return f"range {span:.3g}, {span / res:.1f}× its noise or quantum"
+    return ""
+
 def summarize_campaign(campaign: Campaign) -> str:
     """Human-readable overview for ``mbst check``.
 
@@ -815,6 +828,10 @@ def summarize_campaign(campaign: Campaign) -> str:
         other = [c for c in df.columns if c not in channel_names]
         if other:
             extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
+        still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
+        if still:
+            extras.append(f"WARNING: test '{spec.id}': its input {family.input_channel} "
+                          f"barely moves ({still}); a model's FIT on it measures the noise")
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
     numeric = {"duration_s", "rate_hz", "samples"}
 

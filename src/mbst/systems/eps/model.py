@@ -13,7 +13,12 @@ import numpy as np
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from mbst.core.filtering import INPUT_WINDOW_S, cubic_window, white_noise_std
+from mbst.core.filtering import (
+    INPUT_WINDOW_S,
+    cubic_window,
+    signal_resolution,
+    white_noise_std,
+)
 from mbst.core.model import ModelDefinition
 from mbst.core.threads import run_longest_first
 from mbst.io.campaign import CampaignError
@@ -237,15 +242,12 @@ def reversals(angle: np.ndarray, least_rad: float = 0.0, share: float = 0.2) -> 
 
 
 def _angle_resolution(campaign: Campaign, pt: PreparedTest) -> float:
-    """The logged angle's noise and quantum: the larger of its white-noise level and its
-    smallest step."""
+    """The logged angle's noise and quantum (``signal_resolution``)."""
     try:
         raw = campaign.frame(pt.id)["steering_angle_rad"].to_numpy(float)
     except (KeyError, CampaignError):  # a test the campaign does not log (a planned one)
         raw = pt.angle_in_rad
-    steps = np.abs(np.diff(raw))
-    steps = steps[steps > 0]
-    return max(white_noise_std(raw, pt.dt_s), float(steps.min()) if steps.size else 0.0)
+    return signal_resolution(raw, pt.dt_s)
 
 
 def _slowest_loop(campaign: Campaign, tests: list[PreparedTest]) -> PreparedTest | None:
