@@ -250,3 +250,36 @@ def test_a_ratio_named_in_one_part_of_a_body_is_stated_as_the_body_s():
     f.indistinguishable_from = ["motor"]
     state_body_sizes([f], body, EPS_MODEL, p)
     assert f.parameters["static_to_coulomb_ratio"] == pytest.approx(1.5)
+
+
+def test_a_name_whose_body_twin_is_not_ruled_out_is_at_most_even_odds():
+    """Realistic rig 716: a rack presliding hysteresis named in the motor at 0.51 (57.7 % of
+    the stage against the rack's 56.5 %, the motor the better in 85 % of the resamples). The
+    resamples cannot see how the base fit split the body's levels, so the name is at most
+    even odds against the rack; a look-alike of another effect, or a part that moves apart,
+    leaves the confidence alone."""
+    from mbst.discovery.rounds.catalogue import EVEN_ODDS, proposal_finding
+    from mbst.discovery.state import Proposal
+    from mbst.systems.eps.model import EPS_MODEL
+
+    w = np.sin(np.linspace(0, 20, 4000))
+
+    def finding(rack_speed, alternatives, confidence=0.9):
+        best = SimpleNamespace(key="presliding_hysteresis:motor", effect="presliding_hysteresis",
+                               component="motor", stage="free_tie_rods", relative_gain=0.577,
+                               aic_delta=-467.0, n_eff=545.0, tests=["a"])
+        boot = {"confidence": confidence, "wins_share": 0.85, "explained_above_noise": 0.9,
+                "resamples": 400, "gain_5_95_percent": [0.47, 0.64],
+                "alternatives": [{"key": f"{e}:{c}", "effect": e, "component": c,
+                                  "relative_gain": 0.565, "winner_better_share": 0.85}
+                                 for e, c in alternatives]}
+        state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                                residuals=[_residual("a", 16.0 / 0.0075 * w, rack_speed)])
+        return proposal_finding(Proposal(best, None, {}, 0.5, [], boot), state, None, None)
+
+    same = [("presliding_hysteresis", "rack")]
+    f = finding(w, same)
+    assert f.confidence == EVEN_ODDS and "COMPONENT UNDECIDED" in f.evidence
+    assert finding(w, same, confidence=0.3).confidence == 0.3
+    assert finding(w, [("backlash", "rack_pinion")]).confidence == 0.9
+    assert finding(np.cos(np.linspace(0, 33, 4000)), same).confidence == 0.9
