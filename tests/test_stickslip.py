@@ -258,7 +258,8 @@ def test_a_name_whose_body_twin_is_not_ruled_out_is_at_most_even_odds():
     resamples cannot see how the base fit split the body's levels, so the name is at most
     even odds against the rack; a look-alike of another effect, or a part that moves apart,
     leaves the confidence alone."""
-    from mbst.discovery.rounds.catalogue import EVEN_ODDS, proposal_finding
+    from mbst.discovery.acceptance import EVEN_ODDS
+    from mbst.discovery.rounds.catalogue import proposal_finding
     from mbst.discovery.state import Proposal
     from mbst.systems.eps.model import EPS_MODEL
 
@@ -283,3 +284,37 @@ def test_a_name_whose_body_twin_is_not_ruled_out_is_at_most_even_odds():
     assert finding(w, same, confidence=0.3).confidence == 0.3
     assert finding(w, [("backlash", "rack_pinion")]).confidence == 0.9
     assert finding(np.cos(np.linspace(0, 33, 4000)), same).confidence == 0.9
+
+
+def test_a_stick_slip_name_the_base_fit_s_split_decided_is_undecided():
+    """Realistic rig 702: a rack Stribeck (1.84) named in the motor at 0.96 by the stick-slip
+    round; the base fit had put the rack's friction in the motor (rack 6.4 N for 317 N,
+    motor 0.19 N·m for 0.019), so a rack rise scaled nothing. The finding names the rack
+    beside the motor, at most even odds; a typical split, or parts that move apart, leave
+    it alone."""
+    from mbst.discovery.acceptance import EVEN_ODDS
+    from mbst.discovery.rounds.stickslip import _split_undecided
+    from mbst.systems.eps.model import EPS_MODEL
+
+    w = np.sin(np.linspace(0, 20, 4000))
+    idx = EPS_MODEL.param_index
+    p = EPS_MODEL.default_vector().copy()
+    p[idx["rack.coulomb_n"]], p[idx["motor.coulomb_nm"]] = 6.4, 0.19
+    rec = {"candidates": [{"key": "stribeck_friction:motor", "stage": "free_tie_rods"},
+                          {"key": "stribeck_friction:rack", "stage": "free_tie_rods"},
+                          {"key": "stribeck_friction:steering_column",
+                           "stage": "blocked_column"}]}
+    atypical = {"rack.coulomb_n": 270.0, "motor.coulomb_nm": 0.03}
+
+    def judged(rack_speed, reset):
+        f = _finding("stribeck_friction", "motor", 0.96)
+        state = SimpleNamespace(model=EPS_MODEL, p=p,
+                                residuals=[_residual("a", 16.0 / 0.0075 * w, rack_speed)])
+        _split_undecided(f, rec, state, reset)
+        return f
+
+    f = judged(w, atypical)
+    assert f.indistinguishable_from == ["rack"] and f.confidence == EVEN_ODDS
+    assert "COMPONENT UNDECIDED" in f.evidence and "rack.coulomb_n 6.4" in f.evidence
+    assert judged(w, {}).confidence == 0.96
+    assert judged(np.cos(np.linspace(0, 33, 4000)), atypical).indistinguishable_from == []

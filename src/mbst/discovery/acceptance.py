@@ -49,6 +49,8 @@ BOOTSTRAP_RIVALS = 6
 # A rival the winner beats in fewer of the resamples than this is an alternative the
 # campaign does not rule out (the conventional 95 %): the finding names it beside the winner.
 SEPARATED_SHARE = 0.95
+# the most a name can be worth against a part of its body the tests do not part from it
+EVEN_ODDS = 0.5
 
 
 def ranking_bootstrap(scorer: StageScorer, best: CandidateScore, scores: list[CandidateScore],
@@ -230,10 +232,10 @@ def speed_correlation(best: CandidateScore, component: str,
     """Correlation of ``component``'s speed with ``best``'s over the tests of its stage
     (base model); 0 where either has no element speed."""
     tests = [residuals[t] for t in best.tests if t in residuals]
-    return _speeds_correlation(best.component, component, tests, model)
+    return parts_speed_correlation(best.component, component, tests, model)
 
 
-def _speeds_correlation(one: str, other: str, tests: list[TestResidual],
+def parts_speed_correlation(one: str, other: str, tests: list[TestResidual],
                         model: ModelDefinition) -> float:
     speeds = model.element_speeds
     if one not in speeds or other not in speeds or not tests:
@@ -257,7 +259,7 @@ def fold_one_body(findings: list[Finding], residuals: list[TestResidual],
     """
     def one_body(g: Finding, f: Finding) -> bool:
         tests = [r for r in residuals if r.scenario == f.stage and r.role == "identification"]
-        return abs(_speeds_correlation(g.component, f.component, tests, model)) \
+        return abs(parts_speed_correlation(g.component, f.component, tests, model)) \
             >= TIE_SPEED_CORRELATION
 
     out: list[Finding] = []

@@ -22,9 +22,6 @@ from mbst.discovery.structure import CandidateScore, StageScorer, rank_key, stru
 
 log = logging.getLogger(__name__)
 
-# the most a name can be worth against a part of its body the tests do not rule out
-EVEN_ODDS = 0.5
-
 # At most this many look-alikes of a round's winner are refitted from its stage fit, and it
 # from theirs (``_cross_seeded``): two refits each.
 MAX_CONTENDERS = 3
@@ -272,8 +269,8 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
     evidence = evidence_text(best, proposal.runner, cv, state.regions, sparse, neural,
                              proposal.ties, proposal.bootstrap)
     twin = _body_twin_not_ruled_out(proposal, state)
-    if twin is not None and confidence > EVEN_ODDS:
-        confidence = EVEN_ODDS
+    if twin is not None and confidence > acceptance.EVEN_ODDS:
+        confidence = acceptance.EVEN_ODDS
         evidence += (f"; COMPONENT UNDECIDED: {twin} moves as one body with "
                      f"{spec.component} here and is not ruled out; the resamples cannot "
                      "see how the fit split the body's levels between them, so the name "
