@@ -356,7 +356,7 @@ def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
     fit had put the rack's friction in the motor (rack 6.4 N for 317 N, motor 0.19 N·m for
     0.019), so a rack rise scaled nothing (10 %, its ratio on the bound) and the motor's
     removed 96 % of the envelope misfit. The finding names the other part beside its own
-    and is at most even odds (``catalogue.EVEN_ODDS``).
+    and is at most even odds (``acceptance.EVEN_ODDS``).
     """
     model = state.model
     tests = [r for r in state.residuals
