@@ -715,3 +715,6 @@ def test_comparison_bars_draw_a_slot_per_measured_channel_only(monkeypatch, tmp_
                      "loaded\ntie_rod_force_left_n"]
     legend = [t.get_text() for t in drawn[0].axes[0].get_legend().get_texts()]
     assert legend == ["base", "extended", "sindy"]
+    # the family's blank slots say so (sindy on the two torque slots), the others' do not
+    marks = [t for t in drawn[0].axes[0].texts if t.get_text() == "no FIT"]
+    assert len(marks) == 2

@@ -182,6 +182,12 @@ class ModelDefinition:
         speed (``TestResidual.states``). Discovery compares them to tell when
         two components move as one body in a stage's tests, so that an effect
         fitted in either explains the data alike and the finding says so.
+    coulomb_level
+        ``coulomb_level(p, component, speed) -> float``: the Coulomb level of a
+        friction element at ``speed`` in its own coordinate, with its direction
+        (asymmetry) and low-speed rise (Stribeck) as the family's law has them; the
+        finding of an effect named in one part of a body states the body's size from
+        it (``discovery/lumped.py``). ``None``: no such statement.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -212,6 +218,7 @@ class ModelDefinition:
     carry_through: tuple[str, ...] = ()
     equation_error: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
     element_speeds: dict[str, str] = field(default_factory=dict)
+    coulomb_level: Callable[[np.ndarray, str, float], float] | None = None
     simulate_tests: Callable[[list, list[np.ndarray]], list[list[dict]]] | None = None
     row_steps: Callable[[Any, np.ndarray], np.ndarray] | None = None
     param_index: dict[str, int] = field(init=False)

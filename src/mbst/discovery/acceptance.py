@@ -236,7 +236,9 @@ def speed_correlation(best: CandidateScore, component: str,
 
 
 def parts_speed_correlation(one: str, other: str, tests: list[TestResidual],
-                        model: ModelDefinition) -> float:
+                            model: ModelDefinition) -> float:
+    """Correlation of two components' speeds over ``tests`` (base model); 0 where either
+    has no element speed."""
     speeds = model.element_speeds
     if one not in speeds or other not in speeds or not tests:
         return 0.0
@@ -244,6 +246,13 @@ def parts_speed_correlation(one: str, other: str, tests: list[TestResidual],
     theirs = np.concatenate([r.states[speeds[other]] for r in tests])
     return float(np.corrcoef(mine, theirs)[0, 1]) if np.std(mine) * np.std(theirs) > 0 \
         else 0.0
+
+
+def one_body_in_stage(one: str, other: str, stage: str, residuals: list[TestResidual],
+                      model: ModelDefinition) -> bool:
+    """Whether two components move as one body in ``stage``'s identification tests."""
+    tests = [r for r in residuals if r.scenario == stage and r.role == "identification"]
+    return abs(parts_speed_correlation(one, other, tests, model)) >= TIE_SPEED_CORRELATION
 
 
 def fold_one_body(findings: list[Finding], residuals: list[TestResidual],
@@ -257,16 +266,12 @@ def fold_one_body(findings: list[Finding], residuals: list[TestResidual],
     of the fast envelope); two names would say two effects where these tests see one.
     The model keeps both terms; the folded finding says so.
     """
-    def one_body(g: Finding, f: Finding) -> bool:
-        tests = [r for r in residuals if r.scenario == f.stage and r.role == "identification"]
-        return abs(parts_speed_correlation(g.component, f.component, tests, model)) \
-            >= TIE_SPEED_CORRELATION
-
     out: list[Finding] = []
     for f in sorted(findings, key=lambda f: -f.confidence):
         same = next((g for g in out if g.effect == f.effect and g.effect != "unexplained"
                      and g.stage == f.stage and g.component != f.component
-                     and one_body(g, f)), None)
+                     and one_body_in_stage(g.component, f.component, f.stage, residuals,
+                                           model)), None)
         if same is None:
             out.append(f)
             continue

@@ -140,9 +140,14 @@ def _guarded(what: str, write, failures: list[str], required: Path | None = None
 def fallback_summary(result: DiscoveryResult) -> str:
     """The findings and what failed, when the full page cannot be drawn up."""
     lines = [f"# Discovery on `{result.campaign}`", ""]
-    lines += [f"- **{f.effect} / {f.component}** ({f.confidence:.2f}): {f.evidence}"
+    lines += [f"- **{f.effect} / {_where(f)}** ({f.confidence:.2f}): {f.evidence}"
               for f in result.findings] or ["No finding."]
     return "\n".join(lines + failure_lines(result.failures)) + "\n"
+
+
+def _where(f) -> str:
+    """A finding's component, with the parts of its body it could sit in as well."""
+    return " or ".join([f.component, *f.indistinguishable_from])
 
 
 def failure_lines(failures: list[str]) -> list[str]:
@@ -162,10 +167,10 @@ def markdown_summary(result: DiscoveryResult) -> str:
             pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
             if f.effect == "unexplained" and f.signature:
                 pars = f"{f.signature['kind']} in {f.signature['quantity']}"
-            where = " or ".join([f.component, *f.indistinguishable_from])
             alt = "".join(f" (or {a['effect']} in {a['component']}?)" for a in f.alternatives)
-            lines.append(f"| {i} | {f.effect}{alt} | {where} | {pars} | {f.confidence:.2f} |")
-        lines += [""] + [f"- **{f.effect} / {f.component}**: {f.evidence}"
+            lines.append(f"| {i} | {f.effect}{alt} | {_where(f)} | {pars} | "
+                         f"{f.confidence:.2f} |")
+        lines += [""] + [f"- **{f.effect} / {_where(f)}**: {f.evidence}"
                          for f in result.findings]
     else:
         lines.append("No finding: the base model explains the identification tests down to "

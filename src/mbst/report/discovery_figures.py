@@ -172,14 +172,17 @@ def comparison_bars(result, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(wide)), 4.2))
     x = np.arange(len(wide))
     w = 0.8 / len(models)
-    for k, m in enumerate(models):
-        vals = np.clip(wide[m].to_numpy(float), 0, 100)
-        ax.bar(x + k * w - 0.4 + w / 2, vals, w, label=m,
-               color=MODEL_STYLE.get(m, {}).get("color"))
-    ax.set_xticks(x, [f"{t}\n{c}" for t, c in wide.index], fontsize=6)
-    ax.set_ylabel("control FIT [%] (clipped to 0–100)", fontsize=8)
     lo = np.nanmin(np.clip(wide.to_numpy(float), 0, 100))
     ax.set_ylim(max(0.0, lo - 5), 100.5)
+    for k, m in enumerate(models):
+        vals = np.clip(wide[m].to_numpy(float), 0, 100)
+        at = x + k * w - 0.4 + w / 2
+        ax.bar(at, vals, w, label=m, color=MODEL_STYLE.get(m, {}).get("color"))
+        for xi in at[np.isnan(vals)]:  # a family that could not simulate it ("What failed")
+            ax.text(xi, max(0.0, lo - 5) + 0.5, "no FIT", rotation=90, fontsize=6,
+                    ha="center", va="bottom", color=MODEL_STYLE.get(m, {}).get("color"))
+    ax.set_xticks(x, [f"{t}\n{c}" for t, c in wide.index], fontsize=6)
+    ax.set_ylabel("control FIT [%] (clipped to 0–100)", fontsize=8)
     ax.legend(fontsize=7, ncol=len(models), loc="upper center", bbox_to_anchor=(0.5, -0.22))
     ax.grid(axis="y", alpha=0.3)
     ax.set_title("held-out control tests: FIT % of each model family", fontsize=9)

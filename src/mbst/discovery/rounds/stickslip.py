@@ -34,11 +34,7 @@ from scipy.signal import butter, sosfiltfilt
 
 from mbst.core.filtering import exponential_filter
 from mbst.core.model import EffectSpec, ModelDefinition
-from mbst.discovery.acceptance import (
-    EVEN_ODDS,
-    TIE_SPEED_CORRELATION,
-    parts_speed_correlation,
-)
+from mbst.discovery.acceptance import EVEN_ODDS, one_body_in_stage
 from mbst.discovery.state import DiscoveryState, Finding
 from mbst.identify.fitting import PreparedTest, twins_each_alone
 
@@ -359,8 +355,6 @@ def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
     and is at most even odds (``acceptance.EVEN_ODDS``).
     """
     model = state.model
-    tests = [r for r in state.residuals
-             if r.scenario == finding.stage and r.role == "identification"]
     mine = model.effects[f"{finding.effect}:{finding.component}"].level
     for c in rec["candidates"][1:]:
         other = model.effects.get(c["key"])
@@ -368,9 +362,8 @@ def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
                 or other.component == finding.component \
                 or other.component in finding.indistinguishable_from:
             continue
-        one_body = abs(parts_speed_correlation(finding.component, other.component, tests, model)) \
-            >= TIE_SPEED_CORRELATION
-        if one_body and (mine in reset or other.level in reset):
+        if (mine in reset or other.level in reset) and one_body_in_stage(
+                finding.component, other.component, finding.stage, state.residuals, model):
             finding.indistinguishable_from.append(other.component)
             finding.confidence = min(finding.confidence, EVEN_ODDS)
             fitted = ", ".join(f"{n} {state.p[model.param_index[n]]:.3g} (typical {reset[n]:.3g})"

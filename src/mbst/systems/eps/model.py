@@ -28,7 +28,12 @@ from mbst.systems.eps import kernel as K
 from mbst.systems.eps import simulate as eps
 from mbst.systems.eps.channels import OUTPUT_CHANNELS, SYSTEM_NAME
 from mbst.systems.eps.library import EpsCandidateLibrary
-from mbst.systems.eps.params import EFFECT_CATALOGUE, PARAM_INDEX, PARAM_SPECS
+from mbst.systems.eps.params import (
+    EFFECT_CATALOGUE,
+    PARAM_INDEX,
+    PARAM_SPECS,
+    friction_base,
+)
 
 if TYPE_CHECKING:
     from mbst.identify.fitting import PreparedTest
@@ -487,6 +492,14 @@ def _pre_identify_assist(campaign: Campaign, tests: list[PreparedTest], p: np.nd
 # -------------------------------------------------------------------------------------
 # simulator hooks
 # -------------------------------------------------------------------------------------
+def coulomb_level(p: np.ndarray, component: str, speed: float) -> float:
+    """A friction element's Coulomb level at ``speed`` (the kernel's own law: direction,
+    Stribeck rise; no load, no position bump)."""
+    b = friction_base(component)
+    return float(K.coulomb_level(np.asarray(p, np.float64), b, p[b], float(speed), 0.0,
+                                 1.0)[0])
+
+
 def prepare_inputs(frame, dt_s: float, spec, window_s: float = INPUT_WINDOW_S
                    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """The rig is driven by the measured steering angle, smoothed without lag.
@@ -623,6 +636,7 @@ EPS_MODEL = ModelDefinition(
     discovery_rounds=("structure", "stick_slip", "unexplained", "resolution"),
     # the column's speed is the imposed input; the tires' has no internal signal
     element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},
+    coulomb_level=coulomb_level,
 )
 
 # the family's definition, as the registry looks it up (core.family.SystemFamily.model)
