@@ -3,6 +3,8 @@ planted structure that no catalogue effect has, and on coloured noise alone."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -61,9 +63,8 @@ def test_a_channel_that_lags_the_angle_is_described_as_a_lag_of_its_size():
 
 
 def test_a_channel_ahead_of_its_twin_is_read_as_a_slow_model_not_a_sensor_delay():
-    """A realistic clean rig's tie-rod forces ran 1 ms ahead of the twin (the rig's friction
-    switches more sharply than the model's): no sensor answers before its input, so the
-    reading says the model is the slow one."""
+    """A realistic clean rig's tie-rod forces ran 1 ms ahead of the twin: no sensor answers
+    before its input, so the reading says the model is the slow one."""
     from mbst.discovery.rounds.unexplained import reading
 
     sig = _describe(_campaign(_lagged(-0.012)))
@@ -73,6 +74,34 @@ def test_a_channel_ahead_of_its_twin_is_read_as_a_slow_model_not_a_sensor_delay(
     assert "sensor's delay" in reading(sig) and "faster than the model" in reading(sig)
     assert "lags the input that drives the model by 1" in reading(
         _describe(_campaign(_lagged(0.012))))
+
+
+def test_a_slow_model_behind_a_delayed_sensor_names_that_sensor():
+    """A 3-ms torque-sensor lag alone left a realistic clean rig's tie-rod forces 0.9 ms ahead
+    of the twin (the stages fitted on the delayed torque, the true parameters leaving none):
+    the finding led by the slow model names the sensor that reads behind its twin."""
+    import dataclasses
+
+    from mbst.discovery.rounds.unexplained import unexplained_finding
+
+    ahead = dataclasses.replace(_describe(_campaign(_lagged(-0.012))),
+                                channel="tie_rod_force_left_n")
+    behind = _describe(_campaign(_lagged(0.004), seed=3))
+    assert behind.above_chance > 0 and behind.best.group == f"lag:{CH}"
+    finding = unexplained_finding([ahead], set(), [ahead, behind])
+    reading = finding.signature["reading"]
+    assert reading.startswith("the model lags tie_rod_force_left_n by 1")
+    delay = re.search(rf"{CH} reads ([0-9.]+) ms behind its twin", reading)
+    assert delay and float(delay.group(1)) == pytest.approx(4.0, rel=0.25), reading
+    assert "delayed sensor" in reading
+    assert finding.signature["reading"] in finding.evidence
+    # no delayed sensor beside it (or one the model leads): the reading stays as it was
+    alone = unexplained_finding([ahead], set(), [ahead])
+    assert "delayed sensor" not in alone.signature["reading"]
+    leading = dataclasses.replace(ahead, channel=CH)
+    assert "delayed sensor" not in unexplained_finding(
+        [ahead], set(), [ahead, leading]).signature["reading"]
+
 
 def test_a_ripple_in_motor_angle_is_periodic_in_motor_angle_at_its_order():
     sig = _describe(_campaign(lambda t, clean, motor: 0.15 * np.sin(18 * motor)))
