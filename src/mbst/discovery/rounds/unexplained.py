@@ -197,10 +197,10 @@ def delayed_sensor(lead: ChannelSignature, signatures: Sequence[ChannelSignature
     when ``lead`` says the model is the slow one.
 
     A sensor's delay biases the stages fitted on it; the channels fitted after it then
-    show the model lagging the rig. On a clean realistic demo-plan rig a 3-ms torque-sensor
-    lag alone left the tie-rod forces 0.9 ms ahead of the twin (61 % of one test's
-    residual), while the true parameters left none, and the torque's own delay stayed
-    below the margin (18 % held out against 10 % by chance).
+    show the model lagging the rig. On a clean demo-plan bench a 3-ms torque-sensor lag
+    alone left the tie-rod forces 0.9 ms ahead of the twin (65 % of one test's residual;
+    the true parameters left none). With every reality of ``--realistic`` the torque's
+    own delay stayed below the margin (18 % held out against 10 % by chance).
     """
     if lead.best is None or not lead.best.group.startswith("lag:"):
         return None
