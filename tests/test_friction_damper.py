@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -125,6 +126,12 @@ def test_import_control_glob_picks_the_held_out_tests(sliced, tmp_path):
     with pytest.raises(CampaignError, match="no test matches"):
         import_friction_damper(sliced, tmp_path / "d", control="0.1Hz*")
     assert not (tmp_path / "d").exists()
+    # the sine tests alone and no --control: the error says what to pass, not "None"
+    sines = tmp_path / "sines"
+    shutil.copytree(sliced / "characterization", sines / "characterization")
+    with pytest.raises(CampaignError, match="no earthquake test.*--control '1Hz\\*'"):
+        import_friction_damper(sines, tmp_path / "e")
+    assert not (tmp_path / "e").exists()
 
 
 @needs_data

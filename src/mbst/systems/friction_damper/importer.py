@@ -151,8 +151,10 @@ def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
             spec.extra["published"] = pub
         tests.append((spec, frame))
     if not any(s.role == "control" for s, _ in tests):
-        raise CampaignError(f"no test matches --control {control!r}: nothing held out",
-                            campaign=name, path=data_dir)
+        why = (f"no test matches --control {control!r}" if control is not None else
+               "no earthquake test to hold out and no --control given (e.g. --control "
+               "'1Hz*' holds out the 1 Hz sine tests)")
+        raise CampaignError(f"{why}: nothing held out", campaign=name, path=data_dir)
     if not any(s.role == "identification" for s, _ in tests):
         raise CampaignError("every test is a control: nothing left to identify",
                             campaign=name, path=data_dir)
