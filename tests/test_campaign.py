@@ -599,6 +599,26 @@ def test_missing_required_column(tmp_path):
     assert f"test '{spec.id}'" in msg and NAME in msg
 
 
+def test_header_names_with_spaces_after_the_commas_are_read(tmp_path):
+    camp = build(tmp_path)
+    spec = make_specs()[1]
+    path = camp / "tests" / f"{spec.id}.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0].replace(",", ", ")] + lines[1:]) + "\n")
+    df = read_campaign(camp).frame(spec.id)
+    assert set(family().required_channels(spec.scenario)) <= set(df.columns)
+
+
+def test_a_file_not_separated_by_commas_is_named_as_such(tmp_path):
+    camp = build(tmp_path)
+    spec = make_specs()[1]
+    path = camp / "tests" / f"{spec.id}.csv"
+    path.write_text(path.read_text().replace(",", ";"))
+    msg = str(error(camp))
+    assert "missing column" in msg and f"test '{spec.id}'" in msg
+    assert "looks separated by ';'" in msg
+
+
 def test_optional_column_not_required(tmp_path):
     # The blocked-column scenario needs fewer channels than the others.
     fam = family()

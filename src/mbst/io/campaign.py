@@ -488,6 +488,18 @@ def _is_scalar(value: Any) -> bool:
     return isinstance(value, (str, int, float)) and not isinstance(value, bool)
 
 
+def _separator_hint(df: pd.DataFrame) -> str:
+    """Why a header may read as one column: the file is not separated by commas."""
+    if len(df.columns) != 1:
+        return ""
+    head = df.columns[0]
+    sep = next((c for c in (";", "\t", "|") if c in head), None)
+    if sep is None:
+        return ""
+    return (f" (the header reads as one column {head[:60]!r}: campaign files are "
+            f"comma-separated, and this one looks separated by {sep!r})")
+
+
 def _load_test_data(
     file_path: Path, spec: TestSpec, family: SystemFamily, campaign: str
 ) -> pd.DataFrame:
@@ -513,7 +525,8 @@ def _load_test_data(
     except Exception as exc:
         raise fail(f"cannot read {suffix[1:]} file: {type(exc).__name__}: {exc}") from exc
 
-    df.columns = [str(c) for c in df.columns]
+    # "time_s, steering_angle_rad" (a space after each comma, as some exports write it)
+    df.columns = [str(c).strip() for c in df.columns]
     present = [ch.name for ch in family.channels if ch.name in df.columns]
 
     # Known channels must be numeric; name the first cell that is not.
@@ -531,7 +544,8 @@ def _load_test_data(
 
     for col in family.required_channels(spec.scenario):
         if col not in df.columns:
-            raise fail(f"missing column required for scenario '{spec.scenario}'", column=col)
+            raise fail(f"missing column required for scenario '{spec.scenario}'"
+                       + _separator_hint(df), column=col)
 
     if len(df) < MIN_SAMPLES:
         raise fail(f"only {len(df)} samples; at least {MIN_SAMPLES} are needed")
