@@ -252,7 +252,7 @@ def test_a_ratio_named_in_one_part_of_a_body_is_stated_as_the_body_s():
     assert f.parameters["static_to_coulomb_ratio"] == pytest.approx(1.5)
 
 
-def test_a_name_whose_body_twin_is_not_ruled_out_is_at_most_even_odds():
+def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
     """Realistic rig 716: a rack presliding hysteresis named in the motor at 0.51 (57.7 % of
     the stage against the rack's 56.5 %, the motor the better in 85 % of the resamples). The
     resamples cannot see how the base fit split the body's levels, so the name is at most
@@ -281,6 +281,23 @@ def test_a_name_whose_body_twin_is_not_ruled_out_is_at_most_even_odds():
     same = [("presliding_hysteresis", "rack")]
     f = finding(w, same)
     assert f.confidence == EVEN_ODDS and "COMPONENT UNDECIDED" in f.evidence
+    # a tie (the parts named together) is the same question: the body at its confidence,
+    # the part at even odds (realistic rig 905: a rack asymmetry named "motor (or rack)"
+    # at 0.87)
+    twin = SimpleNamespace(component="rack", relative_gain=0.574)
+    best = SimpleNamespace(key="asymmetric_friction:motor", effect="asymmetric_friction",
+                           component="motor", stage="free_tie_rods", relative_gain=0.577,
+                           aic_delta=-467.0, n_eff=545.0, tests=["a"])
+    boot = {"confidence": 0.87, "wins_share": 0.87, "explained_above_noise": 1.0,
+            "resamples": 400, "gain_5_95_percent": [0.47, 0.64], "alternatives": []}
+    state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                            residuals=[_residual("a", 16.0 / 0.0075 * w, w)])
+    tied = proposal_finding(Proposal(best, None, {}, 0.5, [(twin, 0.9998)], boot), state,
+                            None, None)
+    assert tied.indistinguishable_from == ["rack"] and tied.confidence == EVEN_ODDS
+    assert "body of motor and rack at 0.87" in tied.evidence
+    alone = proposal_finding(Proposal(best, None, {}, 0.5, [], boot), state, None, None)
+    assert alone.confidence == 0.87
     assert finding(w, same, confidence=0.3).confidence == 0.3
     assert finding(w, [("backlash", "rack_pinion")]).confidence == 0.9
     assert finding(np.cos(np.linspace(0, 33, 4000)), same).confidence == 0.9

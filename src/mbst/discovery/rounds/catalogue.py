@@ -268,6 +268,15 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
     confidence = (boot if boot is not None else proposal.weight) * cv_frac
     evidence = evidence_text(best, proposal.runner, cv, state.regions, sparse, neural,
                              proposal.ties, proposal.bootstrap)
+    if proposal.ties and confidence > acceptance.EVEN_ODDS:
+        # the parts move as one body and the same effect fits them alike: the effect is
+        # named with the body's confidence, the part at even odds (realistic rig 905: a
+        # rack asymmetry 0.745 named "motor (or rack)" at 0.87, the motor leading)
+        body = " and ".join([spec.component] + [s.component for s, _ in proposal.ties])
+        evidence += (f"; COMPONENT UNDECIDED: the effect is in the body of {body} at "
+                     f"{confidence:.2f}, but which part carries it these tests do not say: "
+                     "the name is at even odds")
+        confidence = acceptance.EVEN_ODDS
     twin = _body_twin_not_ruled_out(proposal, state)
     if twin is not None and confidence > acceptance.EVEN_ODDS:
         confidence = acceptance.EVEN_ODDS
