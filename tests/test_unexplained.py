@@ -103,6 +103,19 @@ def test_a_slow_model_behind_a_delayed_sensor_names_that_sensor():
         [ahead], set(), [ahead, leading]).signature["reading"]
 
 
+def test_a_structure_at_one_place_is_not_read_as_a_ripple():
+    """A rise at one motor angle (a rack friction at one position, left beside its name)
+    is fitted by a low order over the narrow range the tests sweep; its term explains the
+    residual on that side of the sweep and nothing on the other: no ripple (rig 911 got "22
+    periods per revolution" at 0.68). A ripple of the same size keeps its reading."""
+    one_place = _describe(_campaign(
+        lambda t, clean, motor: 0.3 * np.exp(-((motor - 3.0) / 0.5) ** 2)))
+    assert not one_place.best.group.startswith("periodic:"), one_place.best
+    assert "one side of the tests' middle angle" in one_place.one_sided
+    ripple = _describe(_campaign(lambda t, clean, motor: 0.04 * np.sin(18 * motor)))
+    assert ripple.best.group == "periodic:motor_angle_rad" and not ripple.one_sided
+
+
 def test_a_ripple_in_motor_angle_is_periodic_in_motor_angle_at_its_order():
     sig = _describe(_campaign(lambda t, clean, motor: 0.15 * np.sin(18 * motor)))
     assert sig.structured, sig

@@ -164,6 +164,8 @@ def signature_record(sig: ChannelSignature) -> dict:
         "terms": _terms(best),
         "ranking": [{"group": g.group, "share_of_residual": g.cv_share}
                     for g in sig.ranking[:5]],
+        # a periodic reading dropped because it sat on one side of the sweep
+        **({"not_a_ripple": sig.one_sided} if sig.one_sided else {}),
     }
 
 
