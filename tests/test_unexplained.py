@@ -112,6 +112,9 @@ def test_a_structure_at_one_place_is_not_read_as_a_ripple():
         lambda t, clean, motor: 0.3 * np.exp(-((motor - 3.0) / 0.5) ** 2)))
     assert not one_place.best.group.startswith("periodic:"), one_place.best
     assert "one side of the tests' middle angle" in one_place.one_sided
+    from mbst.report.discovery import _verdict
+
+    assert _verdict(one_place, 1.0).endswith("a structure at one place, not a ripple")
     ripple = _describe(_campaign(lambda t, clean, motor: 0.04 * np.sin(18 * motor)))
     assert ripple.best.group == "periodic:motor_angle_rad" and not ripple.one_sided
 

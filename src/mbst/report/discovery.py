@@ -227,13 +227,15 @@ def signature_lines(result: DiscoveryResult) -> list[str]:
 
 
 def _verdict(sig: ChannelSignature, level: float) -> str:
-    """A channel's verdict: structure left, a small structure below the margin, or none."""
+    """A channel's verdict: structure left, a small structure below the margin, or none;
+    with the periodic reading dropped for sitting on one side of the sweep, if one was."""
+    aside = f"; {sig.one_sided}" if sig.one_sided else ""
     if sig.structured:
-        return "**structure left** (see figures/unexplained.png)"
+        return "**structure left** (see figures/unexplained.png)" + aside
     if 0 < sig.above_chance < sig.min_share and sig.explained_rms > sig.noise_rms:
         return (f"a small structure, {100 * sig.above_chance:.1f} % above chance: below the "
-                f"{100 * sig.min_share:.0f} % an effect must explain to be named")
-    return f"nothing this library predicts (residual {level:.1f}× the noise floor)"
+                f"{100 * sig.min_share:.0f} % an effect must explain to be named" + aside)
+    return f"nothing this library predicts (residual {level:.1f}× the noise floor)" + aside
 
 
 def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
