@@ -343,6 +343,8 @@ def describe_channel(tests: list[TestResidual], channel: str, places: dict[str, 
     one_sided = _one_sided_ripple(lib, ranking)
     if one_sided:
         ranking = [g for g in ranking if not g.group.startswith("periodic:")]
+    # the copies keep every group, periodic ones too: a dropped reading leaves the chance
+    # level where it was, the stricter side
     rng = np.random.default_rng([seed, 31])
     chance = [max(s.cv_share for s in _score_groups(lib, [_surrogate(y, rng) for y in lib.y]))
               for _ in range(surrogates)]
@@ -366,13 +368,13 @@ def _one_sided_ripple(lib: _Library, ranking: list[GroupScore]) -> str:
 
     A ripple locked to a rotating part (a cogging, a joint's second order) repeats over
     the angle: its term explains the residual alike on either side of the tests' middle
-    angle. A structure at one
-    place (a rack friction that rises at one position, left over beside its catalogue
-    name) is fitted by a high order over the narrow range the tests sweep, and predicts
-    held-out tests that pass the same place: an independent-simulator-like rig (seed 911)
-    got "a ripple in steering_torque_nm periodic in motor_angle_rad, 22 periods per
-    revolution" at 0.68 beside its named position-dependent rack friction. Returns '' for a
-    ripple that repeats (or a best group that is not periodic), else the reading dropped.
+    angle. A structure at one place (a rack friction that rises at one position, left
+    over beside its catalogue name) is fitted by a high order over the narrow range the
+    tests sweep, and predicts held-out tests that pass the same place: an
+    independent-simulator-like rig (seed 911) got "a ripple in steering_torque_nm
+    periodic in motor_angle_rad, 22 periods per revolution" at 0.68 beside its named
+    position-dependent rack friction. Returns '' for a ripple that repeats (or a best
+    group that is not periodic), else the reading dropped.
     """
     if not ranking or not ranking[0].group.startswith("periodic:"):
         return ""
