@@ -303,6 +303,53 @@ def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
     assert finding(np.cos(np.linspace(0, 33, 4000)), same).confidence == 0.9
 
 
+def test_a_body_twin_within_the_winners_bootstrap_spread_is_named_beside_it():
+    """Realistic rig 923 (known values as priors): a rack presliding named in the motor,
+    26.9 % of the stage against the rack's 24.7 %, the motor the better in 97 % of the
+    resamples, so no look-alike "not ruled out". A paired resample cannot move how the base
+    fit split the body's levels; the rack's share lies inside the motor's own bootstrap
+    spread (21.2-32.5 %), so the finding names both parts, at most even odds. A twin
+    below that spread, one in a part that moves apart, or another effect stays out."""
+    from mbst.discovery.acceptance import EVEN_ODDS, body_twins_within_reach
+    from mbst.discovery.rounds.catalogue import proposal_finding
+    from mbst.discovery.state import Proposal
+    from mbst.systems.eps.model import EPS_MODEL
+
+    w = np.sin(np.linspace(0, 20, 4000))
+    apart = np.cos(np.linspace(0, 33, 4000))
+
+    def cand(key, gain):
+        effect, component = key.split(":")
+        return SimpleNamespace(key=key, effect=effect, component=component,
+                               stage="free_tie_rods", relative_gain=gain, aic_delta=-300.0,
+                               n_eff=1054.0, tests=["a"], fell_back=False)
+
+    best = cand("presliding_hysteresis:motor", 0.269)
+    boot = {"confidence": 0.9, "wins_share": 0.97, "explained_above_noise": 1.0,
+            "resamples": 400, "gain_5_95_percent": [0.212, 0.325], "alternatives": []}
+
+    def twins(rack_speed, *scores):
+        residuals = {"a": _residual("a", 16.0 / 0.0075 * w, rack_speed)}
+        return body_twins_within_reach(best, [best, *scores], boot, residuals, EPS_MODEL)
+
+    rack = cand("presliding_hysteresis:rack", 0.247)
+    assert [t["component"] for t in twins(w, rack)] == ["rack"]
+    assert twins(w, cand("presliding_hysteresis:rack", 0.15)) == []
+    assert twins(apart, rack) == []
+    assert twins(w, cand("asymmetric_friction:rack", 0.26)) == []
+
+    state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                            residuals=[_residual("a", 16.0 / 0.0075 * w, w)])
+    for confidence, expected in ((0.9, EVEN_ODDS), (0.18, 0.18)):
+        b = {**boot, "confidence": confidence, "body_twins": twins(w, rack)}
+        f = proposal_finding(Proposal(best, rack, {}, 0.5, [], b), state, None, None)
+        assert f.indistinguishable_from == ["rack"] and f.confidence == expected
+        assert "COMPONENT UNDECIDED: rack moves as one body with motor" in f.evidence
+    alone = proposal_finding(Proposal(best, rack, {}, 0.5, [], {**boot, "body_twins": []}),
+                             state, None, None)
+    assert alone.indistinguishable_from == [] and alone.confidence == 0.9
+
+
 def test_a_stick_slip_name_the_base_fit_s_split_decided_is_undecided():
     """Realistic rig 702: a rack Stribeck (1.84) named in the motor at 0.96 by the stick-slip
     round; the base fit had put the rack's friction in the motor (rack 6.4 N for 317 N,
