@@ -66,13 +66,6 @@ ROUNDS: dict[str, Round] = {
     "resolution": resolution_round,
 }
 
-# Rounds that name what the output-error cost cannot see. Once one has put its effect in,
-# the structure rounds go on from the model with it: a stick-slip sawtooth, whose phase no
-# refit follows, filled the stage's cost and hid the rest (a realistic rig with a 1.45°
-# worm-gear backlash, a rack Stribeck and a rack asymmetry: the backlash removed 2.7 %
-# beside the sawtooth, 45.9 % once the Stribeck term was in).
-UNMASKING_ROUNDS = frozenset({"stick_slip"})
-
 __all__ = ["FORMAT", "ROUNDS", "DiscoverSettings", "DiscoveryResult", "Finding", "discover",
            "total_cost"]
 
@@ -175,22 +168,11 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None,
     try:
         for name in base.model.discovery_rounds:
             if settings.wants(base.model, name):
-                _run_round(state, name)
+                ROUNDS[name](state)
         return _conclude(state, locations, neural_job, t_start)
     finally:
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
-
-
-def _run_round(state: DiscoveryState, name: str) -> None:
-    """One round; after an unmasking round that named something, the structure rounds
-    again while there is room (rounds go on until the residual is at the noise floor)."""
-    before = len(state.accepted)
-    ROUNDS[name](state)
-    model, settings = state.model, state.settings
-    if name in UNMASKING_ROUNDS and len(state.accepted) > before and state.room_for_more() \
-            and "structure" in model.discovery_rounds and settings.wants(model, "structure"):
-        ROUNDS["structure"](state)
 
 
 def _base_model(campaign: Campaign, settings: DiscoverSettings, base_fit: dict | None

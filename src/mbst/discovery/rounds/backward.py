@@ -27,14 +27,10 @@ log = logging.getLogger(__name__)
 def backward_check(state: DiscoveryState) -> None:
     """Test every accepted effect but the last against the final model; drop the ones the
     others make up for (a record in ``state.rounds`` either way)."""
-    # the structure rounds' own effects: a stick-slip name is judged by its envelope,
-    # which no output-error refit of its stage sees
-    own = {p.best.key for p in state.proposals}
-    earlier = [k for k in state.accepted[:-1] if k in own]
-    if len(state.accepted) < 2 or not earlier:
+    if len(state.accepted) < 2:
         return
     checked = []
-    for key in earlier:
+    for key in state.accepted[:-1]:
         row, p_without = _still_needed(state, key)
         checked.append(row)
         if not row["needed"]:

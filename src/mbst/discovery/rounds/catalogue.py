@@ -39,22 +39,18 @@ class NextRound:
 
 
 def structure_rounds(state: DiscoveryState) -> None:
-    """Round after round of the structure test until one stops (``DiscoveryState.rounds``),
-    from the model as it stands: the pipeline runs them again once a round the output-error
-    cost cannot see has put its effect in (``pipeline.UNMASKING_ROUNDS``)."""
+    """Round after round of the structure test until one stops (``DiscoveryState.rounds``)."""
     t0 = time.perf_counter()
     bar = _progress_bar(state.settings.progress)
     nxt: NextRound | None = None
-    first = len(state.rounds)
-    for rnd in range(first, first + state.settings.max_effects - len(state.accepted)):
+    for rnd in range(state.settings.max_effects):
         nxt = _one_round(state, rnd, nxt, bar)
         if nxt is None:
             break
     if bar is not None:
         bar.close()
     backward_check(state)
-    state.timings["structure_s"] = (state.timings.get("structure_s", 0.0)
-                                    + time.perf_counter() - t0)
+    state.timings["structure_s"] = time.perf_counter() - t0
 
 
 def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
@@ -104,7 +100,7 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     rec["bootstrap"] = boot
     state.proposals.append(Proposal(best, scores[1] if len(scores) > 1 else None, cv,
                                     acceptance.akaike_weight(best, scores), ties, boot))
-    if not state.room_for_more():
+    if rnd + 1 >= settings.max_effects:
         return None  # no round after this one to screen for
     return _next_candidates(state, scores, rec)
 
