@@ -382,3 +382,28 @@ def test_a_stick_slip_name_the_base_fit_s_split_decided_is_undecided():
     assert "COMPONENT UNDECIDED" in f.evidence and "rack.coulomb_n 6.4" in f.evidence
     assert judged(w, {}).confidence == 0.96
     assert judged(np.cos(np.linspace(0, 33, 4000)), atypical).indistinguishable_from == []
+
+
+def test_the_resolution_step_predicts_against_the_model_the_structure_rounds_searched(
+        monkeypatch):
+    """Rig 921 (drawn like an independent simulator's: a 1.45° worm-gear backlash beside a
+    rack stick-slip): the stick-slip round put a rack Stribeck term in after the structure
+    rounds had stopped, and the resolution step, predicting against that model, stated the
+    gap resolved "at or below 0.20°" while a 1.45° gap was missed. A size is resolved when
+    the structure test would have named it, so the step predicts against the model the
+    structure rounds last searched; without them, against the model as it stands."""
+    import mbst.discovery.rounds.resolution as resolution
+    from mbst.discovery.state import DiscoverSettings
+
+    seen = []
+    monkeypatch.setattr(resolution, "campaign_resolution",
+                        lambda ids, p, *a, **k: seen.append(p) or [])
+    searched, with_stribeck = np.zeros(3), np.ones(3)
+    state = SimpleNamespace(ids=[], p=with_stribeck, p_searched=searched, scales={},
+                            model_free_by_stage={}, settings=DiscoverSettings(),
+                            accepted=["stribeck_friction:rack"], compensating=lambda: {},
+                            timings={})
+    resolution.resolution_round(state)
+    state.p_searched = None
+    resolution.resolution_round(state)
+    assert seen[0] is searched and seen[1] is with_stribeck

@@ -158,6 +158,10 @@ class DiscoveryState:
     extended_residuals: list[TestResidual] = field(default_factory=list)
     # a round or method that failed on the way (reported; never the answer)
     failures: list[str] = field(default_factory=list)
+    # the model the structure rounds last searched (``None``: they did not run); a later
+    # round whose effect no output-error refit sees (stick-slip, equation error) moves
+    # ``p`` on from it, and the resolution step predicts against this one
+    p_searched: np.ndarray | None = None
 
     @classmethod
     def start(cls, campaign: Campaign, settings: DiscoverSettings, base: IdentifyResult,

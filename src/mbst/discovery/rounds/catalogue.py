@@ -50,6 +50,7 @@ def structure_rounds(state: DiscoveryState) -> None:
     if bar is not None:
         bar.close()
     backward_check(state)
+    state.p_searched = state.p.copy()
     state.timings["structure_s"] = time.perf_counter() - t0
 
 
