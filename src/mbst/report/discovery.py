@@ -266,7 +266,8 @@ def resolution_lines(result: DiscoveryResult) -> list[str]:
     lines = ["", "## What these tests can resolve", "",
              "Predicted share of its stage's residual cost each catalogue pair would remove if "
              "the rig had it at its realistic size (the twin with the effect minus the twin "
-             "without, less what the stage's parameters absorb; `resolution.csv`), and the "
+             "without, less what the stage's parameters absorb, against the model the "
+             "structure rounds searched last; `resolution.csv`), and the "
              "smallest size tried (0.1× to 4× the realistic size) that clears the margins — "
              f"the detection limit of these tests ({100 * st.min_relative_gain:.0f} % and "
              f"{figures.aic_margin_text(result)}). An estimate: a pair marked *not resolved* can "
