@@ -148,7 +148,8 @@ def test_resolution_is_judged_against_the_model_as_it_stands(monkeypatch):
     monkeypatch.setattr(resolution_mod, "campaign_resolution",
                         lambda *a, **k: seen.update(k) or [])
     state = SimpleNamespace(
-        ids=[], p=np.zeros(1), scales={}, model_free_by_stage={"free_tie_rods": ["x"]},
+        ids=[], p=np.zeros(1), p_searched=None, scales={},
+        model_free_by_stage={"free_tie_rods": ["x"]},
         accepted=["backlash:worm_gear"], compensating=lambda: {"x": 1.0}, timings={},
         settings=SimpleNamespace(min_relative_gain=0.1, min_aic_drop=None,
                                  identify=SimpleNamespace(decimate=2)))
