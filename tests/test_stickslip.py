@@ -89,7 +89,8 @@ def test_a_look_alike_that_fits_with_the_levels_at_typical_values_is_tied():
     """Motor and rack move as one body; a base fit that put the friction in the motor
     (rack Coulomb on its bound) leaves a rack Stribeck rise nothing to scale. With the
     levels back at their typical values the rack candidate fits as well: the finding lists
-    it and the rule that decided is "levels". Where it still fits worse there, no tie."""
+    it and the rule that decided is "levels". Where it still fits worse there than the
+    winner does in 95 % of its resamples, no tie."""
     from mbst.discovery.rounds.stickslip import _level_ties
     from mbst.systems.eps.model import EPS_MODEL
 
@@ -126,6 +127,16 @@ def test_a_look_alike_that_fits_with_the_levels_at_typical_values_is_tied():
         _level_ties(env, ranked, base, reset, np.array([10.0]))
         assert (ranked[0].tied_with == ["rack"]) is tied
         assert ranked[0].decided_by == ("levels" if tied else "misfit")
+    # with the winner's resamples, the tie is what they say, not a fixed factor: the
+    # winner (the motor, 90 % of the misfit) removes 85 % or more in 95 % of them (rig 904:
+    # the rack re-split at 96.0 %, the motor's 5th percentile 95.6 %, its misfit 1.25x)
+    for rack_weight, tied in ((0.3, True), (0.8, False)):
+        scores = [score_candidate(env, EPS_MODEL.effects[f"stribeck_friction:{e}"], base,
+                                  np.array([10.0])) for e in ("motor", "rack")]
+        ranked = rank(scores)
+        ranked[0].bootstrap = {"gain_5_95_percent": [0.85, 0.95]}
+        _level_ties(env, ranked, base, reset, np.array([10.0]))
+        assert (ranked[0].tied_with == ["rack"]) is tied, rack_weight
 
 
 def test_rank_compares_stages_by_the_share_of_their_own_misfit_removed():
@@ -407,3 +418,46 @@ def test_the_resolution_step_predicts_against_the_model_the_structure_rounds_sea
     state.p_searched = None
     resolution.resolution_round(state)
     assert seen[0] is searched and seen[1] is with_stribeck
+
+
+def _envelope_case(spread: float, seed: int = 0):
+    """Per-sample envelope misfits of a stage (base, winner, a one-body look-alike): the
+    base leaves 1 a sample; the winner all but what 40 stretches of 50 samples leave; the
+    look-alike 1 % of the base more on the whole, stretch by stretch that ± ``spread``."""
+    rng = np.random.default_rng(seed)
+    n, stretch = 2000, 50
+    winner = rng.uniform(0.0, 0.05, n // stretch)
+    jitter = rng.standard_normal(n // stretch)
+    rival = np.maximum(winner + 0.01 + spread * (jitter - jitter.mean()), 0.0)
+    rival += winner.mean() + 0.01 - rival.mean()  # the look-alike stays the worse
+    return np.stack([np.ones(n), np.repeat(winner, stretch), np.repeat(rival, stretch)])
+
+
+@pytest.mark.parametrize("spread, named_beside", [(0.0, False), (0.08, True)])
+def test_a_stick_slip_look_alike_the_resamples_do_not_part_is_named_beside_it(
+        monkeypatch, spread, named_beside):
+    """Rig 904: a rack Stribeck; the motor's removed 97 % of the envelope misfit, the
+    rack's 94 %, and the motor was named alone (the misfits 4.7 and 8.8 units, outside a
+    fixed factor of 1.25). Whether the data part the two is what the stage's resamples
+    say: a look-alike as good stretch by stretch give or take is named beside the winner
+    and the name is at most even odds; one that is worse everywhere is not."""
+    import mbst.discovery.rounds.stickslip as ss
+    from mbst.discovery.state import Finding
+
+    costs = _envelope_case(spread)
+    env = SimpleNamespace(sample_misfits=lambda ps: costs)
+    scores = [StickSlipScore(key=f"stribeck_friction:{c}", effect="stribeck_friction",
+                             component=c, stage="free_tie_rods", misfit_base=1.0,
+                             misfit=float(costs[i].mean()), params=np.zeros(2))
+              for i, c in ((1, "motor"), (2, "rack"))]
+    boot = ss.envelope_bootstrap(env, scores, np.zeros(2))
+    assert boot["wins_share"] > 0.5  # the motor wins most resamples either way
+    finding = Finding(effect="stribeck_friction", component="motor", parameters={},
+                      confidence=0.97, evidence="", stage="free_tie_rods",
+                      relative_gain=0.97, aic_delta=None, cv={})
+    effects = {s.key: SimpleNamespace(effect=s.effect, component=s.component) for s in scores}
+    state = SimpleNamespace(model=SimpleNamespace(effects=effects), residuals=[])
+    monkeypatch.setattr(ss, "one_body_in_stage", lambda *a: True)
+    ss._twins_within_reach(finding, {"bootstrap": boot}, state)
+    assert (finding.indistinguishable_from == ["rack"]) is named_beside, boot
+    assert (finding.confidence <= ss.EVEN_ODDS) is named_beside

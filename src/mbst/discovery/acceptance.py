@@ -77,13 +77,8 @@ def ranking_bootstrap(scorer: StageScorer, best: CandidateScore, scores: list[Ca
     if not np.all(np.isfinite(costs)) or n < 4:
         return {"confidence": None, "note": "no finite per-sample cost to resample"}
     block = int(np.clip(np.ceil(2.0 * n / max(best.n_eff, 1.0)), 1, n // 4))
+    gains = block_bootstrap_gains(costs, block, seed)
     n_blocks = n // block
-    sums = costs[:, : n_blocks * block].reshape(len(costs), n_blocks, block).sum(axis=2)
-    rng = np.random.default_rng([seed, 7])
-    draws = rng.integers(0, n_blocks, size=(BOOTSTRAP_RESAMPLES, n_blocks))
-    counts = np.stack([np.bincount(d, minlength=n_blocks) for d in draws])  # (B, blocks)
-    totals = counts @ sums.T  # (B, 1 + 1 + rivals)
-    gains = 1.0 - totals[:, 1:] / np.maximum(totals[:, :1], 1e-300)
     wins = (np.argmax(gains, axis=1) == 0) & (gains[:, 0] >= min_gain)
     alternatives = _alternatives(gains, rivals)
     # A winner that leaves most of the structure above the noise floor explains only part
@@ -101,6 +96,20 @@ def ranking_bootstrap(scorer: StageScorer, best: CandidateScore, scores: list[Ca
             "alternatives": alternatives,
             "gain_5_95_percent": [float(np.percentile(gains[:, 0], 5)),
                                   float(np.percentile(gains[:, 0], 95))]}
+
+
+def block_bootstrap_gains(costs: np.ndarray, block: int, seed: int = 0) -> np.ndarray:
+    """Moving-block bootstrap of per-sample costs: ``costs`` (base, candidates...) by
+    sample, cut into stretches of ``block`` samples drawn with replacement; the share of
+    the base's cost each candidate removes in each of ``BOOTSTRAP_RESAMPLES`` draws,
+    shape (draws, candidates)."""
+    n_blocks = costs.shape[1] // block
+    sums = costs[:, : n_blocks * block].reshape(len(costs), n_blocks, block).sum(axis=2)
+    rng = np.random.default_rng([seed, 7])
+    draws = rng.integers(0, n_blocks, size=(BOOTSTRAP_RESAMPLES, n_blocks))
+    counts = np.stack([np.bincount(d, minlength=n_blocks) for d in draws])  # (B, blocks)
+    totals = counts @ sums.T  # (B, 1 + candidates)
+    return 1.0 - totals[:, 1:] / np.maximum(totals[:, :1], 1e-300)
 
 
 def _alternatives(gains: np.ndarray, rivals: list[CandidateScore]) -> list[dict]:
