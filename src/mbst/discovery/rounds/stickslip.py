@@ -305,7 +305,7 @@ def envelope_bootstrap(env: StageEnvelope, ranked: list[StickSlipScore], base: n
     winner's own spread (realistic rig 904: a rack Stribeck, the motor's removed 97 %, the
     rack's 94 %, and the motor was named alone at a confidence of its share, 0.97)."""
     best = ranked[0]
-    rivals = [s for s in ranked[1:] if s.stage == best.stage]
+    rivals = [s for s in ranked[1:] if s.stage == best.stage and np.isfinite(s.misfit)]
     costs = env.sample_misfits(np.stack([base, best.params] + [s.params for s in rivals]))
     n = costs.shape[1]
     if not np.all(np.isfinite(costs)) or n < 8:
