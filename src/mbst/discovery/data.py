@@ -38,6 +38,10 @@ class TestResidual:
     states: dict[str, np.ndarray] = field(default_factory=dict)
     # the exponential filter's τ of this test's channels and twin (0: unfiltered)
     tau_s: float = 0.0
+    # the element speeds (``ModelDefinition.element_speeds``) of the same test with what the
+    # base fit compensated with back at its typical values (``DiscoveryState.compensating``):
+    # whether two parts move as one body is judged on both (``acceptance``)
+    typical_speeds: dict[str, np.ndarray] = field(default_factory=dict)
 
     __test__ = False  # not a pytest class
 

@@ -158,6 +158,9 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None,
     # through the base model as well as the sensors' (a production 0.35° worm-gear backlash
     # was named at 0.55, "partly explained", with the angle's noise counted as structure)
     state.measure_floors("catalogue rounds")
+    # two parts the base fit moved apart only by what it compensated with still move as one
+    # body at the typical values (``acceptance.parts_speed_correlation``)
+    state.measure_typical_speeds("catalogue rounds")
     # the network needs only the base residuals: it trains on one torch thread beside
     # the structure test, which leaves the second core idle between its refits
     pool = neural_job = None

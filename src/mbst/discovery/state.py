@@ -206,6 +206,30 @@ class DiscoveryState:
         names = [n for _, stage in self.model.cascade for n in stage if n not in held]
         return compensating_parameters(self.p, names, self.model)
 
+    def measure_typical_speeds(self, step: str) -> None:
+        """Each identification residual's element speeds with what the base fit compensated
+        with back at its typical values (``TestResidual.typical_speeds``); none where
+        nothing is far from typical. A failure leaves them out and is reported under
+        ``step``: the base model's speeds still judge alone."""
+        names = set(self.model.element_speeds.values())
+        reset = self.compensating()
+        if not names or not reset:
+            return
+        q = self.p.copy()
+        for n, v in reset.items():
+            q[self.model.param_index[n]] = v
+        try:
+            by_id = {r.id: r for r in self.residuals}
+            for pt, twins in zip(self.ids, twins_of_tests(self.ids, [q[None]] * len(self.ids)),
+                                 strict=True):
+                if pt.id in by_id:
+                    by_id[pt.id].typical_speeds = {
+                        n: twins[0][f"internal.{n}"] for n in names
+                        if f"internal.{n}" in twins[0]}
+        except Exception as exc:  # a judgement aid; it never sinks discovery
+            log.warning("typical-value speeds failed: %s: %s", type(exc).__name__, exc)
+            self.failures.append(f"{step} (typical-value speeds): {type(exc).__name__}: {exc}")
+
     def measure_floors(self, step: str) -> None:
         """Each identification test's floor at the current model: the input's noise through
         it beside the sensor's own (``PreparedTest.floor``); if that fails, the floor stays
