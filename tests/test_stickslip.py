@@ -501,3 +501,27 @@ def test_parts_the_base_fit_moved_apart_by_compensating_still_move_as_one_body()
         f = proposal_finding(Proposal(best, None, {}, 0.5, [], boot), state, None, None)
         assert f.indistinguishable_from == named
         assert f.confidence == (EVEN_ODDS if named else 0.67)
+
+
+def test_a_stick_slip_confidence_counts_the_share_of_resamples_the_winner_still_wins(
+        monkeypatch):
+    """The stick-slip name's confidence is its share of the envelope misfit × the share of
+    tests it lowers × the share of resampled stretches it still wins: a winner the resamples
+    doubt is worth less than its share says; without resamples the share stands."""
+    import mbst.discovery.rounds.stickslip as ss
+
+    def record(bootstrap):
+        best = StickSlipScore("stribeck_friction:rack", "stribeck_friction", "rack",
+                              "free_tie_rods", 100.0, 10.0, np.zeros(1),
+                              per_test={"a": (50.0, 5.0), "b": (50.0, 5.0)},
+                              bootstrap=bootstrap)
+        monkeypatch.setattr(ss, "stick_slip_test",
+                            lambda *a, **k: ({"free_tie_rods": 100.0}, [best]))
+        return ss._stick_slip_record([], np.zeros(1), set(), [], {}, seed=0)[1]
+
+    boot = {"wins_share": 0.6, "gain_5_95_percent": [0.85, 0.95], "resamples": 400,
+            "block_samples": 10, "rivals": []}
+    doubted = record(boot)
+    assert doubted.confidence == pytest.approx(0.9 * 0.6)
+    assert "60 % of 400 resamples" in doubted.evidence
+    assert record({}).confidence == pytest.approx(0.9)

@@ -330,7 +330,9 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
     for s, corr in ties:
         parts.append(
             f"NOT DECIDED between {best.component} and {s.component}: they move as one body in "
-            f"the {best.stage} tests (speed correlation {corr:.5f}) and the same effect in "
+            f"the {best.stage} tests (speed correlation {corr:.5f}: the base model's or, where "
+            "closer to one, with what its fit compensated with at typical values) and the "
+            "same effect in "
             f"{s.component} removed {100 * s.relative_gain:.1f} %; a test that moves one "
             "without the other, or a sensor between them, would tell them apart")
     if runner is not None:
