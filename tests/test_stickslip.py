@@ -525,3 +525,18 @@ def test_a_stick_slip_confidence_counts_the_share_of_resamples_the_winner_still_
     assert doubted.confidence == pytest.approx(0.9 * 0.6)
     assert "60 % of 400 resamples" in doubted.evidence
     assert record({}).confidence == pytest.approx(0.9)
+
+
+def test_the_stick_slip_figure_names_the_parts_the_answer_leaves_open():
+    """Rig 904: the round accepted the motor's Stribeck term, the answer is "motor or rack";
+    the figure's title says what the answer says, not the key the round put in."""
+    from mbst.report.discovery_figures import _stick_slip_verdict
+
+    rec = {"accepted": "stribeck_friction:motor"}
+    f = _finding("stribeck_friction", "motor", 0.48)
+    f.indistinguishable_from = ["rack"]
+    title = _stick_slip_verdict(SimpleNamespace(findings=[f]), rec)
+    assert title == "named stribeck_friction in motor or rack, confidence 0.48"
+    assert _stick_slip_verdict(SimpleNamespace(findings=[]), rec) == \
+        "accepted stribeck_friction:motor"
+    assert _stick_slip_verdict(SimpleNamespace(findings=[f]), {"accepted": None}) == "no finding"

@@ -190,6 +190,19 @@ def comparison_bars(result, path: Path) -> None:
     plots.save_figure(fig, path)
 
 
+def _stick_slip_verdict(result, rec: dict) -> str:
+    """What the round named, with the parts its answer leaves open ("motor or rack")."""
+    if not rec["accepted"]:
+        return "no finding"
+    effect, component = rec["accepted"].split(":")
+    f = next((f for f in result.findings if f.effect == effect
+              and component in (f.component, *f.indistinguishable_from)), None)
+    if f is None:
+        return f"accepted {rec['accepted']}"
+    parts = " or ".join([f.component, *f.indistinguishable_from])
+    return f"named {effect} in {parts}, confidence {f.confidence:.2f}"
+
+
 def stick_slip(result, path: Path) -> bool:
     """Fast part and its envelope on the test with the most stick-slip misfit.
 
@@ -230,7 +243,7 @@ def stick_slip(result, path: Path) -> bool:
     plots._style(axes[0], f"{pt.id}: {label_of(ch)} above {stickslip.HIGHPASS_HZ:g} Hz\n"
                  "(where a stick-slip sawtooth shows; its phase is not repeatable; the "
                  "twins carry the measured input's noise)", label_of(ch), "")
-    verdict = f"accepted {rec['accepted']}" if rec["accepted"] else "no finding"
+    verdict = _stick_slip_verdict(result, rec)
     plots._style(axes[1], f"envelope over {stickslip.WINDOW_S:g} s: what the stick-slip test "
                  f"compares ({stage}, {verdict})", f"rms {label_of(ch)}")
     for ax in axes:
