@@ -121,9 +121,17 @@ def test_clean_campaign_leaves_little_to_explain(ev_clean):
 def test_backlash_explains_far_more_than_clean(ev_clean, ev_backlash):
     _report("backlash", ev_backlash)
     assert ev_backlash.variance_explained > 0.1
-    assert ev_backlash.variance_explained > 3 * ev_clean.variance_explained
+    assert ev_backlash.variance_explained > 2 * ev_clean.variance_explained
     # explained variance in N·m²: an order of magnitude and more
     assert ev_backlash.explained_rms > 4 * ev_clean.explained_rms
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "since the base fit holds the motor's friction at the rack's x their typical ratio "
+    "(2026-11-27), the backlash campaign's share fell 0.192 -> 0.140 and the clean one's "
+    "rose 0.036 -> 0.052 (the demo rig's split is 6 % off typical): 2.7x, not 3x"))
+def test_backlash_share_is_three_times_the_clean_share(ev_clean, ev_backlash):
+    assert ev_backlash.variance_explained > 3 * ev_clean.variance_explained
 
 
 def test_backlash_is_blamed_on_a_reversal_effect(ev_backlash):
@@ -184,7 +192,8 @@ def test_stlsq_optimizer_agrees_on_clean_vs_backlash(clean, backlash):
     c = residual_regression(clean, LIBRARY, optimizer="stlsq")
     b = residual_regression(backlash, LIBRARY, optimizer="stlsq")
     _report("stlsq backlash", b)
-    assert b.variance_explained > 3 * c.variance_explained
+    # 0.212 against 0.074 since the motor-rack split is held (2026-11-27; 0.225 before)
+    assert b.variance_explained > 2 * c.variance_explained
     assert b.ranking[0][0].startswith("backlash:")
 
 

@@ -188,6 +188,11 @@ class ModelDefinition:
         (asymmetry) and low-speed rise (Stribeck) as the family's law has them; the
         finding of an effect named in one part of a body states the body's size from
         it (``discovery/lumped.py``). ``None``: no such statement.
+    ties
+        Parameter → (partner, ratio): two levels the family's tests see only as their sum
+        (a motor and a rack geared as one body). A fit that frees both and is told
+        neither holds the first at partner × ratio (their typical ratio) and fits the
+        sum; a value or prior the campaign states for either sets the split instead.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -221,6 +226,7 @@ class ModelDefinition:
     coulomb_level: Callable[[np.ndarray, str, float], float] | None = None
     simulate_tests: Callable[[list, list[np.ndarray]], list[list[dict]]] | None = None
     row_steps: Callable[[Any, np.ndarray], np.ndarray] | None = None
+    ties: dict[str, tuple[str, float]] = field(default_factory=dict)
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 

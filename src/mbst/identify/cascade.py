@@ -321,9 +321,16 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
         notes.append(f"stage {scenario}: {fr.n_diverged} of {fr.n_eval} evaluations simulated "
                      "a diverging trajectory; each counted as a large finite cost the "
                      "optimiser stepped back from")
+    tied = {prob.free[j]: prob.free[k] for j, (k, *_) in prob.ties.items()}
     for n in free:
         spec = model.spec(n)
-        if fr.at_bound[n]:
+        if n in tied:
+            notes.append(
+                f"'{n}' held at {tied[n]} × their ratio at the start "
+                f"({p[model.param_index[n]]:.4g} {spec.unit}): the {scenario} tests move "
+                "them as one body and see only their sum; a value or prior stated for "
+                "either sets the split")
+        elif fr.at_bound[n]:
             notes.append(
                 f"LOUD: '{n}' ended on a bound ({p[model.param_index[n]]:.4g} {spec.unit}, "
                 f"bounds [{spec.lower:.3g}, {prob_upper(prob, n):.3g}]) in stage {scenario}: "

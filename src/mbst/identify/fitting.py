@@ -272,6 +272,7 @@ class FitProblem:
                              for s in specs])
         self.lb = self._to_u(lo)
         self.ub = self._to_u(hi)
+        self.ties = self._ties(prior or {})
         self.n_eval = 0
         # residual evaluations whose simulation diverged (mapped to DIVERGED_RESIDUAL)
         self.n_diverged = 0
@@ -314,6 +315,24 @@ class FitProblem:
                                 self.prior_w)
         self.prior_inflation = factor
 
+    def _ties(self, prior: dict) -> dict[int, tuple[int, float, float, float]]:
+        """Free parameters held at a free partner's value × a ratio (``ModelDefinition.ties``):
+        position in ``free`` → (partner's position, ratio, bounds). The ratio is the start's
+        (the typical one, or the split a base fit settled on); a prior stated for either
+        sets the split instead."""
+        out = {}
+        for name, (partner, typical) in self.model.ties.items() if self.model else ():
+            if name not in self.free or partner not in self.free or name in prior \
+                    or partner in prior:
+                continue
+            i, k = self.model.param_index[name], self.model.param_index[partner]
+            ratio = self.base[i] / self.base[k] if self.base[i] > 0 and self.base[k] > 0 \
+                else typical
+            spec = self.model.param_specs[i]
+            out[self.free.index(name)] = (self.free.index(partner), ratio, spec.lower,
+                                          spec.upper)
+        return out
+
     # coordinates ------------------------------------------------------------------
     def _to_u(self, theta: np.ndarray) -> np.ndarray:
         theta = np.asarray(theta, float)
@@ -330,7 +349,10 @@ class FitProblem:
 
     def p_of(self, u: np.ndarray) -> np.ndarray:
         p = self.base.copy()
-        p[self.idx] = self._from_u(u)
+        theta = self._from_u(u)
+        for j, (k, ratio, lo, hi) in self.ties.items():
+            theta[j] = min(max(theta[k] * ratio, lo), hi)
+        p[self.idx] = theta
         return p
 
     # residuals --------------------------------------------------------------------
@@ -409,7 +431,9 @@ class FitProblem:
         h = 1e-5 * np.maximum(1.0, np.abs(u))
         # step away from the nearer bound so the perturbed point stays feasible
         sgn = np.where(u + h > self.ub, -1.0, 1.0)
-        simulated = [j for j, n in enumerate(self.free) if n not in self.model.offset_channels]
+        # a tied level follows its partner (``p_of``): its own coordinate moves nothing
+        simulated = [j for j, n in enumerate(self.free)
+                     if n not in self.model.offset_channels and j not in self.ties]
         us = [u] + [u + sgn[j] * h[j] * np.eye(len(u))[j] for j in simulated]
         ps = np.stack([self.p_of(v) for v in us])
         last = self._last[1] if self._last is not None and np.array_equal(
@@ -593,8 +617,10 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
     cov_u = bread @ meat @ bread
     std_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
     d = problem.dtheta_du(u)
-    theta = problem._from_u(u)
+    theta = problem.p_of(u)[problem.idx]
     std_theta = std_u * d
+    for j, (k, ratio, _, _) in problem.ties.items():
+        std_theta[j] = std_theta[k] * ratio  # it moves with its partner, by assumption
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_u / np.outer(std_u, std_u)
     corr = np.where(np.isfinite(corr), corr, 0.0)
@@ -604,6 +630,7 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
         if s <= tol or s < 1e-6 * sv.max():
             weak |= np.abs(vt[k]) > 0.3
     weak &= ~problem.stated  # its stated prior holds it
+    weak[list(problem.ties)] = True  # the split is assumed, not measured
     span = problem.ub - problem.lb
     at_bound = (u - problem.lb < 1e-4 * span) | (problem.ub - u < 1e-4 * span)
     rel = np.where(np.abs(theta) > 0, std_theta / np.maximum(np.abs(theta), 1e-300), np.inf)
