@@ -346,6 +346,14 @@ def test_a_body_twin_within_the_winners_bootstrap_spread_is_named_beside_it():
     rack = cand("presliding_hysteresis:rack", 0.247)
     assert [t["component"] for t in twins(w, rack)] == ["rack"]
     assert twins(w, cand("presliding_hysteresis:rack", 0.15)) == []
+    # ... unless it clears the round's margins on its own (rig 904): one body's parts
+    # differ in the model's law of each, not in what the data measure
+    lone = cand("presliding_hysteresis:rack", 0.15)
+    margins = {"key": lone.key, "component": "rack", "relative_gain": 0.15}
+    assert body_twins_within_reach(best, [best, lone], boot, {"a": _residual(
+        "a", 16.0 / 0.0075 * w, w)}, EPS_MODEL, (0.10, 10.4)) == [margins]
+    assert body_twins_within_reach(best, [best, lone], boot, {"a": _residual(
+        "a", 16.0 / 0.0075 * w, apart)}, EPS_MODEL, (0.10, 10.4)) == []
     assert twins(apart, rack) == []
     assert twins(w, cand("asymmetric_friction:rack", 0.26)) == []
 
@@ -420,31 +428,36 @@ def test_the_resolution_step_predicts_against_the_model_the_structure_rounds_sea
     assert seen[0] is searched and seen[1] is with_stribeck
 
 
-def _envelope_case(spread: float, seed: int = 0):
+def _envelope_case(spread: float, seed: int = 0, worse: float = 0.01):
     """Per-sample envelope misfits of a stage (base, winner, a one-body look-alike): the
     base leaves 1 a sample; the winner all but what 40 stretches of 50 samples leave; the
-    look-alike 1 % of the base more on the whole, stretch by stretch that ± ``spread``."""
+    look-alike ``worse`` of the base more on the whole, stretch by stretch that ±
+    ``spread``."""
     rng = np.random.default_rng(seed)
     n, stretch = 2000, 50
     winner = rng.uniform(0.0, 0.05, n // stretch)
     jitter = rng.standard_normal(n // stretch)
-    rival = np.maximum(winner + 0.01 + spread * (jitter - jitter.mean()), 0.0)
-    rival += winner.mean() + 0.01 - rival.mean()  # the look-alike stays the worse
+    rival = np.maximum(winner + worse + spread * (jitter - jitter.mean()), 0.0)
+    rival += winner.mean() + worse - rival.mean()  # the look-alike stays the worse
     return np.stack([np.ones(n), np.repeat(winner, stretch), np.repeat(rival, stretch)])
 
 
-@pytest.mark.parametrize("spread, named_beside", [(0.0, False), (0.08, True)])
+@pytest.mark.parametrize("spread, worse, named_beside", [
+    (0.0, 0.6, False), (0.08, 0.01, True), (0.0, 0.01, True)])
 def test_a_stick_slip_look_alike_the_resamples_do_not_part_is_named_beside_it(
-        monkeypatch, spread, named_beside):
+        monkeypatch, spread, worse, named_beside):
     """Rig 904: a rack Stribeck; the motor's removed 97 % of the envelope misfit, the
     rack's 94 %, and the motor was named alone (the misfits 4.7 and 8.8 units, outside a
-    fixed factor of 1.25). Whether the data part the two is what the stage's resamples
-    say: a look-alike as good stretch by stretch give or take is named beside the winner
-    and the name is at most even odds; one that is worse everywhere is not."""
+    fixed factor of 1.25). A look-alike as good stretch by stretch give or take is named
+    beside the winner and the name is at most even odds. One worse everywhere is too
+    while it clears the round's margin itself: in one body the two parts differ in the
+    model's law of each, not in what the data measure (rig 904 with the levels' split
+    held: the motor's 99 %, the rack's 87 %, the motor named alone at 0.99). One worse
+    everywhere and under the margin is not."""
     import mbst.discovery.rounds.stickslip as ss
     from mbst.discovery.state import Finding
 
-    costs = _envelope_case(spread)
+    costs = _envelope_case(spread, worse=worse)
     env = SimpleNamespace(sample_misfits=lambda ps: costs)
     scores = [StickSlipScore(key=f"stribeck_friction:{c}", effect="stribeck_friction",
                              component=c, stage="free_tie_rods", misfit_base=1.0,

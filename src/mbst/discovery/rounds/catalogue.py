@@ -97,7 +97,8 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     boot = acceptance.ranking_bootstrap(scorer, best, scores, settings.min_relative_gain,
                                         settings.identify.seed, tuple(s for s, _ in ties))
     boot["body_twins"] = acceptance.body_twins_within_reach(
-        best, scores, boot, {r.id: r for r in state.residuals}, state.model)
+        best, scores, boot, {r.id: r for r in state.residuals}, state.model,
+        (settings.min_relative_gain, drop))
     rec["bootstrap"] = boot
     state.proposals.append(Proposal(best, scores[1] if len(scores) > 1 else None, cv,
                                     acceptance.akaike_weight(best, scores), ties, boot))
@@ -285,10 +286,11 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
     if twin is not None and twin not in tied:
         tied.append(twin)
         evidence += (f"; COMPONENT UNDECIDED: {twin} moves as one body with "
-                     f"{spec.component} here and the same effect there is not ruled out; "
-                     "which part carries it hangs on how the fit split the body's levels, "
-                     "which no resample of the data moves, so the name is at most even "
-                     f"odds against {twin}")
+                     f"{spec.component} here and the same effect there is not ruled out "
+                     "or would be named on its own; the two parts differ only in the "
+                     "model's friction law of each and in the split of levels the fit "
+                     "assumes, which no resample of the data moves, so the name is at most "
+                     f"even odds against {twin}")
         confidence = min(confidence, acceptance.EVEN_ODDS)
     return Finding(
         effect=spec.effect, component=spec.component, parameters=params,
@@ -306,9 +308,10 @@ def _body_twin_not_ruled_out(proposal: Proposal, state: DiscoveryState) -> str |
     the better in 85 % of the resamples), or one whose share lies within the winner's own
     bootstrap spread (``acceptance.body_twins_within_reach``; rig 923: 24.7 % beside the
     motor's 26.9 %, spread 21.2–32.5 %, though the motor was the better in 97 % of the
-    resamples). Which of the two carries a friction effect hangs on how the base fit split
-    their levels, which follows the model's friction switches more than the rig
-    (docs/discovery.md), and a resample of the data does not move that split."""
+    resamples), or one that clears the round's margins on its own (rig 904). Which of the
+    two carries a friction effect hangs on the split of their levels and on each part's
+    friction law in the model (docs/discovery.md), and a resample of the data moves
+    neither."""
     best, boot = proposal.best, proposal.bootstrap
     residuals = {r.id: r for r in state.residuals}
     not_ruled_out = (alt["component"] for alt in boot.get("alternatives", [])

@@ -447,10 +447,10 @@ def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
 def _twins_within_reach(finding: Finding, rec: dict, state: DiscoveryState) -> None:
     """The same effect in a part that moves as one body with the named one, which the
     resamples do not separate from it (the named part the better in fewer than
-    ``SEPARATED_SHARE`` of them) or whose share lies within the named part's own spread
-    (at or above its 5th percentile): named beside it, at most even odds. The stage's
-    resamples, not a fixed factor between the two misfits, say whether the data part
-    them (``envelope_bootstrap``)."""
+    ``SEPARATED_SHARE`` of them), whose share lies within the named part's own spread
+    (at or above its 5th percentile), or which clears the round's margin on its own (the
+    two parts then differ in the model's law of each, not in anything the data measure:
+    ``acceptance.body_twins_within_reach``): named beside it, at most even odds."""
     boot = rec.get("bootstrap") or {}
     if not boot:
         return
@@ -460,7 +460,8 @@ def _twins_within_reach(finding: Finding, rec: dict, state: DiscoveryState) -> N
         if other.effect != finding.effect or other.component == finding.component \
                 or other.component in finding.indistinguishable_from:
             continue
-        close = r["winner_better_share"] < SEPARATED_SHARE or r["relative_gain"] >= low
+        close = r["winner_better_share"] < SEPARATED_SHARE or r["relative_gain"] >= low \
+            or r["relative_gain"] >= MIN_GAIN
         if close and one_body_in_stage(finding.component, other.component, finding.stage,
                                        state.residuals, state.model):
             finding.indistinguishable_from.append(other.component)
