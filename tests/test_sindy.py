@@ -121,6 +121,7 @@ def test_clean_campaign_leaves_little_to_explain(ev_clean):
 def test_backlash_explains_far_more_than_clean(ev_clean, ev_backlash):
     _report("backlash", ev_backlash)
     assert ev_backlash.variance_explained > 0.1
+    # the former 3x: ``test_backlash_share_is_three_times_the_clean_share``
     assert ev_backlash.variance_explained > 2 * ev_clean.variance_explained
     # explained variance in N·m²: an order of magnitude and more
     assert ev_backlash.explained_rms > 4 * ev_clean.explained_rms
@@ -192,9 +193,20 @@ def test_stlsq_optimizer_agrees_on_clean_vs_backlash(clean, backlash):
     c = residual_regression(clean, LIBRARY, optimizer="stlsq")
     b = residual_regression(backlash, LIBRARY, optimizer="stlsq")
     _report("stlsq backlash", b)
-    # 0.212 against 0.074 since the motor-rack split is held (2026-11-27; 0.225 before)
+    # 0.212 against 0.074 since the motor-rack split is held (2026-11-27; 0.225 before);
+    # the former 3x: ``test_stlsq_backlash_share_is_three_times_the_clean_share``
     assert b.variance_explained > 2 * c.variance_explained
     assert b.ranking[0][0].startswith("backlash:")
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "since the base fit holds the motor's friction at the rack's x their typical ratio "
+    "(2026-11-27), STLSQ's share is 0.212 on the backlash campaign and 0.074 on the clean "
+    "one: 2.85x, not 3x"))
+def test_stlsq_backlash_share_is_three_times_the_clean_share(clean, backlash):
+    c = residual_regression(clean, LIBRARY, optimizer="stlsq")
+    b = residual_regression(backlash, LIBRARY, optimizer="stlsq")
+    assert b.variance_explained > 3 * c.variance_explained
 
 
 # ---------------------------------------------------------------------------------------

@@ -190,9 +190,10 @@ class ModelDefinition:
         it (``discovery/lumped.py``). ``None``: no such statement.
     ties
         Parameter → (partner, ratio): two levels the family's tests see only as their sum
-        (a motor and a rack geared as one body). A fit that frees both and is told
-        neither holds the first at partner × ratio (their typical ratio) and fits the
-        sum; a value or prior the campaign states for either sets the split instead.
+        (a motor and a rack geared as one body), and their typical ratio. A fit that
+        frees both and is told neither holds the first at partner × their ratio at its
+        start (the typical one, where the start has none) and fits the sum; a value or
+        prior the campaign states for either sets the split instead.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one

@@ -272,7 +272,7 @@ class FitProblem:
                              for s in specs])
         self.lb = self._to_u(lo)
         self.ub = self._to_u(hi)
-        self.ties = self._ties(prior or {})
+        self.ties = self._ties(prior or {}, lo, hi)
         self.n_eval = 0
         # residual evaluations whose simulation diverged (mapped to DIVERGED_RESIDUAL)
         self.n_diverged = 0
@@ -315,11 +315,12 @@ class FitProblem:
                                 self.prior_w)
         self.prior_inflation = factor
 
-    def _ties(self, prior: dict) -> dict[int, tuple[int, float, float, float]]:
+    def _ties(self, prior: dict, lo: np.ndarray, hi: np.ndarray
+              ) -> dict[int, tuple[int, float, float, float]]:
         """Free parameters held at a free partner's value × a ratio (``ModelDefinition.ties``):
-        position in ``free`` → (partner's position, ratio, bounds). The ratio is the start's
-        (the typical one, or the split a base fit settled on); a prior stated for either
-        sets the split instead."""
+        position in ``free`` → (partner's position, ratio, this problem's bounds of it). The
+        ratio is the start's (the typical one, or the split a base fit settled on); a prior
+        stated for either sets the split instead."""
         out = {}
         for name, (partner, typical) in self.model.ties.items() if self.model else ():
             if name not in self.free or partner not in self.free or name in prior \
@@ -328,9 +329,8 @@ class FitProblem:
             i, k = self.model.param_index[name], self.model.param_index[partner]
             ratio = self.base[i] / self.base[k] if self.base[i] > 0 and self.base[k] > 0 \
                 else typical
-            spec = self.model.param_specs[i]
-            out[self.free.index(name)] = (self.free.index(partner), ratio, spec.lower,
-                                          spec.upper)
+            j = self.free.index(name)
+            out[j] = (self.free.index(partner), ratio, float(lo[j]), float(hi[j]))
         return out
 
     # coordinates ------------------------------------------------------------------
