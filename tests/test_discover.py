@@ -719,3 +719,18 @@ def test_comparison_bars_draw_a_slot_per_measured_channel_only(monkeypatch, tmp_
     # the family's blank slots say so (sindy on the two torque slots), the others' do not
     marks = [t for t in drawn[0].axes[0].texts if t.get_text() == "no FIT"]
     assert len(marks) == 2
+
+
+def test_the_report_names_refits_that_stopped_at_their_work_budget():
+    """A candidate refitted short (its step far finer than the base model's) is named, so a
+    reader knows which scores are a best point rather than a converged refit."""
+    from mbst.report.discovery import untested_lines
+
+    rounds = [{"round": 2, "candidates": [
+        {"key": "stribeck_friction:rack", "fell_back": False, "work_spent": True},
+        {"key": "stribeck_friction:motor", "fell_back": False, "work_spent": False}]}]
+    text = " ".join(untested_lines(rounds))
+    assert "1 stopped at their work budget" in text and "stribeck_friction:rack (round 2)" in text
+    assert "stribeck_friction:motor" not in text
+    rounds[0]["candidates"][0]["work_spent"] = False
+    assert "work budget" not in " ".join(untested_lines(rounds))

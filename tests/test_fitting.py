@@ -268,3 +268,37 @@ def test_the_fit_keeps_the_motor_rack_split_where_model_error_would_move_it(tmp_
     for name, rel in (("rack.coulomb_n", 0.05), ("motor.coulomb_nm", 0.15)):
         assert res.params[PARAM_INDEX[name]] == pytest.approx(rig[name], rel=rel), name
     assert any("'motor.coulomb_nm' held at rack.coulomb_n" in w for w in res.warnings)
+
+
+def test_a_fit_stops_at_its_work_budget_where_its_step_shrinks(tests_and_truth, monkeypatch):
+    """A fit drawn to where its step shrinks stops once it has spent its work budget, with
+    its best point, instead of running its evaluation budget at many times the start's
+    cost (realistic rig 932: a rack Stribeck refit into a dip that needs 300× the base
+    model's sub-steps, > 50 min in one round); without the budget the same fit spends
+    several times more. The step here grows with the rack's Coulomb level (as the EPS
+    kernel's grows with a Stribeck dip's slope), which the fit moves 3× to the truth."""
+    tests, p = tests_and_truth
+    level = "rack.coulomb_n"
+    stage = [pt for pt in tests if pt.scenario == "free_tie_rods"][:2]
+    start = p.copy()
+    start[tests[0].model.param_index[level]] /= 3.0
+    j = tests[0].model.param_index[level]
+    model = replace(tests[0].model,
+                    row_steps=lambda pt, ps: 20.0 * (np.atleast_2d(ps)[:, j] / start[j]) ** 4)
+    stage = [replace(pt, model=model) for pt in stage]
+
+    def fit(factor: float):
+        monkeypatch.setattr(fitting_mod, "WORK_BUDGET_FACTOR", factor)
+        prob = FitProblem(stage, {pt.id: list(pt.measured) for pt in stage},
+                          [level, "rack.viscous_ns_per_m"], start, channel_scales(tests),
+                          decimate=2)
+        fr = fitting_mod.solve(prob, [start], max_nfev=20)
+        return prob, fr, prob.budget(20)
+
+    prob, fr, budget = fit(1.0)
+    free_prob, free_fr, _ = fit(float("inf"))
+    assert prob.work.spent <= budget < free_prob.work.spent
+    assert fr.status == 0 and fr.cost == prob.work.best_cost
+    first = 0.5 * float(np.sum(prob.residuals(prob.u_of(start)) ** 2))
+    assert fr.cost < 0.5 * first  # it kept the best point it reached, not its start
+    assert fr.p[j] > 1.5 * start[j]

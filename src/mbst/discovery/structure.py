@@ -73,6 +73,8 @@ class CandidateScore:
     # 1-4 = converged) and how many of its evaluations diverged (large finite cost)
     status: int = 0
     n_diverged: int = 0
+    # the refit stopped at its work budget (``identify/work.py``): refitted short
+    work_spent: bool = False
     # the look-alike whose stage fit this candidate was refitted from (``reseeded``)
     seeded_from: str = ""
 
@@ -399,6 +401,7 @@ class StageScorer:
             per_test_cost_base={pt.id: float(c)
                                 for pt, c in zip(self.tests, per_test_base, strict=True)},
             fell_back=fell_back, status=fr.status, n_diverged=fr.n_diverged,
+            work_spent=fr.work_spent,
             cost_refit=refit_cost,
         )
 
@@ -489,10 +492,10 @@ class StageScorer:
         prob = self.problem(list(spec.free) + self.stage_free, self.neutral_start(p_base, spec))
         fr = solve(prob, starts, max_nfev=max_nfev, interior=0.0)
         for _ in range(MAX_REFINE_STEPS - 1 if converge else 0):
-            if fr.status != 0:  # least_squares stopped on its own tolerances
+            if fr.status != 0 or fr.work_spent:  # stopped on its tolerances or its work
                 break
             nxt = solve(prob, [fr.p], max_nfev=max_nfev, interior=0.0)
-            gained = nxt.cost < fr.cost * (1.0 - CONVERGED_GAIN)
+            gained = nxt.cost < fr.cost * (1.0 - CONVERGED_GAIN) and not nxt.work_spent
             fr = nxt if nxt.cost < fr.cost else fr
             if not gained:
                 break

@@ -9,9 +9,11 @@ residuals and a batched finite-difference Jacobian to
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -24,7 +26,10 @@ from mbst.core.filtering import (
     white_noise_std,
 )
 from mbst.core.model import ModelDefinition
+from mbst.identify.work import WORK_BUDGET_FACTOR, WorkMeter, WorkSpent, simulation_steps
 from mbst.io.campaign import Campaign, CampaignError, TestSpec
+
+log = logging.getLogger(__name__)
 
 # campaign.yaml key that marks a campaign written by `mbst preprocess` (already filtered)
 PREPROCESSED_KEY = "preprocessed"
@@ -274,6 +279,11 @@ class FitProblem:
         self.ub = self._to_u(hi)
         self.ties = self._ties(prior or {}, lo, hi)
         self.n_eval = 0
+        # integration steps spent by the current run, its limit and best point (``work.py``)
+        self.work = WorkMeter()
+        # steps of one evaluation at the problem's base (where its weak prior holds what
+        # the data cannot see): the work budget's unit, set at the first solve
+        self.reference_steps: float | None = None
         # residual evaluations whose simulation diverged (mapped to DIVERGED_RESIDUAL)
         self.n_diverged = 0
         # the last residual evaluation (u, data residual of each test): least_squares asks
@@ -388,12 +398,25 @@ class FitProblem:
 
     def residuals(self, u: np.ndarray) -> np.ndarray:
         p = self.p_of(u)
+        self.work.charge(self.steps(p[None]))
         self.n_eval += 1
         twins = twins_of_tests(self.tests, [p[None]] * len(self.tests))
         out = [self._res_of_twin(pt, tw[0]) for pt, tw in zip(self.tests, twins, strict=True)]
         self._last = (np.array(u, float, copy=True), out)
-        r = np.concatenate([*out, self.prior_w * (u - self.u_prior)])
-        return self._bounded(r)
+        r = self._bounded(np.concatenate([*out, self.prior_w * (u - self.u_prior)]))
+        self.work.seen(u, r)
+        return r
+
+    def steps(self, ps: np.ndarray) -> float:
+        """Integration steps of simulating the rows ``ps`` on every test (``work.py``)."""
+        return sum(simulation_steps(pt, ps) for pt in self.tests)
+
+    def budget(self, max_nfev: int) -> float:
+        """The steps a run of ``max_nfev`` evaluations may spend: ``WORK_BUDGET_FACTOR`` ×
+        what they cost at the reference step, each with its Jacobian."""
+        columns = sum(1 for j, n in enumerate(self.free)
+                      if n not in self.model.offset_channels and j not in self.ties)
+        return WORK_BUDGET_FACTOR * max_nfev * (2 + columns) * (self.reference_steps or 0.0)
 
     def _bounded(self, r: np.ndarray) -> np.ndarray:
         """``r`` with a diverged simulation's residuals at ``±DIVERGED_RESIDUAL``."""
@@ -439,6 +462,9 @@ class FitProblem:
         last = self._last[1] if self._last is not None and np.array_equal(
             self._last[0], u) else None
         reuse = [last is not None and self._reusable(pt, ps) for pt in self.tests]
+        if simulated:
+            self.work.charge(sum(simulation_steps(pt, ps[1:] if r else ps)
+                                 for pt, r in zip(self.tests, reuse, strict=True)))
         sims = twins_of_tests(self.tests, [ps[1:] if r else ps for r in reuse]) \
             if simulated else [[]] * len(self.tests)
         slope = self.dtheta_du(u)
@@ -497,6 +523,8 @@ class FitResult:
     # from); status of the kept start (scipy's least_squares: 0 = budget spent, > 0 converged)
     n_diverged: int = 0
     status: int = 0
+    # the kept start stopped at its work budget (``work.py``): status 0, no further steps
+    work_spent: bool = False
     # the residual's variance (with its memory) over what white sensor noise would give
     noise_inflation: float = 1.0
 
@@ -524,15 +552,15 @@ def solve(
     """
     best = None
     costs = []
+    if problem.reference_steps is None:
+        problem.reference_steps = problem.steps(problem.base[None])
 
     def run(p0: np.ndarray):
         u0 = problem.u_of(p0)
         # keep strictly inside the bounds (trf needs interior starts)
         span = problem.ub - problem.lb
         u0 = np.clip(u0, problem.lb + interior * span, problem.ub - interior * span)
-        res = least_squares(problem.residuals, u0, jac=problem.jacobian,
-                            bounds=(problem.lb, problem.ub), method="trf", x_scale="jac",
-                            max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
+        res = _least_squares_within_budget(problem, u0, max_nfev)
         costs.append(float(res.cost))
         return res
 
@@ -548,6 +576,29 @@ def solve(
         if res.cost < best.cost:
             best = res
     return _summarise(problem, best, costs)
+
+
+def _least_squares_within_budget(problem: FitProblem, u0: np.ndarray, max_nfev: int):
+    """scipy's least_squares from ``u0``; where its simulations spend the problem's work
+    budget first (``work.py``), its best evaluated point, as least_squares would report a
+    spent evaluation budget (status 0)."""
+    problem.work.start(problem.budget(max_nfev))
+    try:
+        return least_squares(problem.residuals, u0, jac=problem.jacobian,
+                             bounds=(problem.lb, problem.ub), method="trf", x_scale="jac",
+                             max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
+    except WorkSpent:
+        meter = problem.work
+        log.info("a fit stopped at its work budget (%.3g steps, %.1f× its start's per "
+                 "evaluation): kept its best point", meter.spent,
+                 meter.spent / max(problem.reference_steps or 1.0, 1.0))
+        searched, meter.limit = meter.spent, float("inf")
+        jac = problem.jacobian(meter.best_u)  # for the standard errors, not the search
+        meter.spent = searched
+        return SimpleNamespace(x=meter.best_u, cost=meter.best_cost, fun=meter.best_r,
+                               jac=jac, status=0, work_spent=True)
+    finally:
+        problem.work.limit = float("inf")  # evaluations outside a run are not budgeted
 
 
 # a parameter whose standard error exceeds this share of its value is reported as not
@@ -649,5 +700,6 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
         starts=costs,
         n_diverged=problem.n_diverged,
         status=int(res.status),
+        work_spent=bool(getattr(res, "work_spent", False)),
         noise_inflation=inflation,
     )

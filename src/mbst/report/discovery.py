@@ -451,10 +451,18 @@ def untested_lines(rounds: list[dict]) -> list[str]:
         return []
     stuck = [f"{c['key']} (round {r['round']})" for r in rounds
              for c in r.get("candidates", []) if c.get("fell_back")]
+    short = [f"{c['key']} (round {r['round']})" for r in rounds
+             for c in r.get("candidates", []) if c.get("work_spent")]
+    if short:  # their refits needed steps far finer than the base model's (work.py)
+        short_line = (f" {len(short)} stopped at their work budget, their step far finer "
+                      "than the base model's (scored at their best point): "
+                      + ", ".join(short) + ".")
+    else:
+        short_line = ""
     if not stuck:
         return ["", f"Every candidate refit ended at or below the base it nests "
-                    f"({len(cands)} refits)."]
+                    f"({len(cands)} refits).{short_line}"]
     return ["", f"**Not fully tested:** {len(stuck)} of {len(cands)} candidate refits ended "
                 f"above the base model they nest (scored as the base, gain 0): "
-                + ", ".join(stuck) + "."]
+                + ", ".join(stuck) + "." + short_line]
 

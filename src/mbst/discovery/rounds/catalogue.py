@@ -248,7 +248,8 @@ def score_record(s: CandidateScore) -> dict:
             "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
             "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2),
             "fell_back": s.fell_back, "optimizer_status": s.status,
-            "diverged_evaluations": s.n_diverged, "seeded_from": s.seeded_from}
+            "diverged_evaluations": s.n_diverged, "work_spent": s.work_spent,
+            "seeded_from": s.seeded_from}
 
 
 def _progress_bar(enabled: bool):
