@@ -734,3 +734,29 @@ def test_the_report_names_refits_that_stopped_at_their_work_budget():
     assert "stribeck_friction:motor" not in text
     rounds[0]["candidates"][0]["work_spent"] = False
     assert "work budget" not in " ".join(untested_lines(rounds))
+
+
+@pytest.mark.parametrize("spent", [True, False])
+def test_a_refined_refit_takes_no_further_step_once_its_work_is_spent(monkeypatch, spent):
+    """A refined candidate continues in steps while a step gains (``_refit``); a step that
+    stopped at its work budget ends it, or each further step would spend another budget
+    at a step far finer than the base's (realistic rig 932)."""
+    from types import SimpleNamespace
+
+    import mbst.discovery.structure as structure_mod
+
+    calls = []
+
+    def fake_solve(prob, starts, max_nfev, interior):
+        calls.append(max_nfev)
+        # each step gains 10 %, stopped on its evaluation budget (status 0)
+        return SimpleNamespace(p=np.zeros(1), cost=0.9 ** len(calls), status=0,
+                               work_spent=spent)
+
+    monkeypatch.setattr(structure_mod, "solve", fake_solve)
+    scorer = SimpleNamespace(stage_free=[], problem=lambda free, base: None,
+                             neutral_start=lambda p, spec: p)
+    spec = SimpleNamespace(free=())
+    structure_mod.StageScorer._refit(scorer, spec, np.zeros(1), [np.zeros(1)], 15,
+                                     converge=True)
+    assert len(calls) == (1 if spent else structure_mod.MAX_REFINE_STEPS)
