@@ -553,3 +553,23 @@ def test_the_stick_slip_figure_names_the_parts_the_answer_leaves_open():
     assert _stick_slip_verdict(SimpleNamespace(findings=[]), rec) == \
         "accepted stribeck_friction:motor"
     assert _stick_slip_verdict(SimpleNamespace(findings=[f]), {"accepted": None}) == "no finding"
+
+
+def test_a_stick_slip_name_on_the_edge_of_its_range_says_its_size_is_a_bound(monkeypatch):
+    """A name whose fitted size lies on its search bound reports that size as a bound, not a
+    measurement; one inside its range does not."""
+    import mbst.discovery.rounds.stickslip as ss
+
+    def record(at_bound):
+        best = StickSlipScore("stribeck_friction:rack", "stribeck_friction", "rack",
+                              "free_tie_rods", 100.0, 10.0, np.zeros(1),
+                              per_test={"a": (50.0, 5.0), "b": (50.0, 5.0)},
+                              at_bound=list(at_bound))
+        monkeypatch.setattr(ss, "stick_slip_test",
+                            lambda *a, **k: ({"free_tie_rods": 100.0}, [best]))
+        return ss._stick_slip_record([], np.zeros(1), set(), [], {}, seed=0)[1]
+
+    edge = record(["stribeck_velocity"]).evidence
+    assert "stribeck_velocity on the edge of its search range" in edge
+    assert "a bound, not a measurement" in edge
+    assert "on the edge of its search range" not in record([]).evidence

@@ -589,8 +589,8 @@ def _least_squares_within_budget(problem: FitProblem, u0: np.ndarray, max_nfev: 
                              max_nfev=max_nfev, ftol=1e-8, xtol=1e-8, gtol=1e-8)
     except WorkSpent:
         meter = problem.work
-        log.info("a fit stopped at its work budget (%.3g steps, %.1f× its start's per "
-                 "evaluation): kept its best point", meter.spent,
+        log.info("a fit stopped at its work budget (%.3g steps, %.1f× one evaluation at "
+                 "its base): kept its best point", meter.spent,
                  meter.spent / max(problem.reference_steps or 1.0, 1.0))
         searched, meter.limit = meter.spent, float("inf")
         jac = problem.jacobian(meter.best_u)  # for the standard errors, not the search

@@ -3,8 +3,8 @@
 A fit's evaluation budget (``max_nfev``) bounds its evaluations, not its time: where a
 family's step shrinks with the parameters (the EPS kernel's Stribeck limit: a rack dip of
 static/Coulomb 4 at 0.05 mm/s needs 0.08 µs steps, 300× the base model's), one refit that
-wanders there runs for hours (realistic rig 932: a round's cross-seeded Stribeck refits
-were still running after 50 min, their starts already at 4-100× the base's step). The
+wanders there runs for hours (realistic rig 932: a round's cross-seeded Stribeck refits,
+started from a fitted dip, were still running after 50 min). The
 meter counts each simulation's steps (samples × sub-steps × rows: deterministic, unlike
 seconds) and a fit stops at its best point once it has spent ``WORK_BUDGET_FACTOR`` ×
 what its evaluation budget costs at the problem's base (for a candidate's refit: the
