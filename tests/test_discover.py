@@ -151,6 +151,7 @@ def test_resolution_is_judged_against_the_model_as_it_stands(monkeypatch):
         ids=[], p=np.zeros(1), p_searched=None, scales={},
         model_free_by_stage={"free_tie_rods": ["x"]},
         accepted=["backlash:worm_gear"], compensating=lambda: {"x": 1.0}, timings={},
+        rounds=[], model=EPS_MODEL,
         settings=SimpleNamespace(min_relative_gain=0.1, min_aic_drop=None,
                                  identify=SimpleNamespace(decimate=2)))
     resolution_mod.resolution_round(state)
@@ -167,6 +168,95 @@ def test_resolution_is_judged_against_the_model_as_it_stands(monkeypatch):
         [pt], np.zeros(len(EPS_MODEL.param_index)), {}, {}, 0.1, None,
         exclude={e.key for e in EFFECT_CATALOGUE} - {keep})
     assert [(r.key, r.stage, r.sizes) for r in out] == [(keep, None, [])]
+
+
+def _stated(refit_share: float, predicted_share: float, other_side: bool = False,
+            multiple: float = 0.36):
+    """A pair resolved from 0.2x, judged against a refit that removed ``refit_share`` at
+    ``multiple`` of the realistic size, where the prediction there says ``predicted_share``
+    (ΔAIC −50 both)."""
+    from mbst.discovery.rounds.resolution import RefitCheck, Resolution, SizeScore, judge_refit
+
+    sizes = [SizeScore(m, {"static_to_coulomb_ratio": 1 + 0.8 * m}, 0.5 * m, -200 * m)
+             for m in (0.1, 0.2, 1.0)]
+    r = Resolution("stribeck_friction:motor", "stribeck_friction", "motor", "free_tie_rods",
+                   ["static_to_coulomb_ratio"], sizes, resolved_from=0.2, aic_drop_needed=10.5,
+                   other_side=list(sizes), other_side_resolved_from=0.2)
+    r.refit = RefitCheck(SizeScore(multiple, {"static_to_coulomb_ratio": 1.29},
+                                   predicted_share, -50.0), refit_share, -50.0, other_side)
+    judge_refit(r, 0.10, 10.5)
+    return r
+
+
+def test_a_limit_the_structure_tests_own_refit_contradicts_is_not_stated():
+    """At a refit's optimum the share it removes is, to first order, the prediction at the
+    size it reached. Realistic rig 954: a motor Stribeck of 1.54 missed, its refit reaching
+    6.9 % of the stage at 1.29, while the limit was stated at 1.16 — an empty answer that
+    ruled out what the rig had. Where the prediction at the refit's size clears the margins
+    and the refit did not, no limit is stated on that side, and the report says why."""
+    from types import SimpleNamespace
+
+    from mbst.report.discovery import limit_text, resolution_lines, resolution_table
+
+    r = _stated(0.069, 0.18)
+    assert r.refit.contradicts and r.resolved_from is None and r.other_side_resolved_from == 0.2
+    text = limit_text(r, False)
+    assert "no limit stated" in text and "6.9 %" in text and "18.0 %" in text
+    assert "no limit stated" not in limit_text(r, True)
+    table = resolution_table([r])
+    refit_row = table[table.side == "refit"]
+    assert refit_row.refit_relative_gain.item() == 0.069
+    assert not table[table.side == "realistic"].resolved.any()
+    result = SimpleNamespace(settings=DiscoverSettings(), resolution=[r], rounds=[],
+                             base=SimpleNamespace(model=EPS_MODEL))
+    assert any("no limit stated" in line for line in resolution_lines(result))
+    # the other side of neutral keeps its own limit and loses it alone
+    other = _stated(0.069, 0.18, other_side=True)
+    assert other.resolved_from == 0.2 and other.other_side_resolved_from is None
+    # a refit that agrees with the prediction, or stopped where no effect would show,
+    # leaves the limit as predicted
+    assert _stated(0.17, 0.18).resolved_from == 0.2
+    assert _stated(0.03, 0.04).resolved_from == 0.2
+    # ... and a refit below the stated limit does not test it (a clean bench's rack
+    # presliding refit ended at 0.005x, the Dahl law's stiff end: 27 % predicted, 0.7 %)
+    assert _stated(0.007, 0.27, multiple=0.005).resolved_from == 0.2
+
+
+def test_a_refits_size_reads_as_a_multiple_of_the_realistic_size():
+    """``size_multiple`` reads ``scaled_size`` backwards, on either side of neutral and for
+    a size that grows as its parameter falls (a presliding stiffness)."""
+    from mbst.discovery.rounds.resolution import size_multiple
+
+    for key, m, other in [("stribeck_friction:motor", 0.36, False),
+                          ("presliding_hysteresis:rack", 2.0, False),
+                          ("power_law_damping:rack", 0.5, True),
+                          ("stiffness_limit_stop:torsion_bar", 1.5, False)]:
+        spec = EFFECTS[key]
+        values = scaled_size(spec, EPS_MODEL, m, other_side=other)
+        assert size_multiple(spec, EPS_MODEL, values, other) == pytest.approx(m), key
+
+
+def test_the_refits_checked_are_those_scored_on_the_model_the_step_predicts_from():
+    """Only the last structure round's refits, and only where it accepted nothing and no
+    backward check moved the model after it; a refit that fell back was not tested."""
+    from mbst.discovery.rounds.resolution import last_round_refits
+
+    cand = {"key": "stribeck_friction:motor", "relative_gain": 0.069, "aic_delta": -14.3,
+            "fell_back": False,
+            "headline": {"static_to_coulomb_ratio": 1.29, "stribeck_velocity": 1.4}}
+    fell = {**cand, "key": "stribeck_friction:rack", "fell_back": True}
+    first = {"round": 1, "candidates": [], "accepted": "backlash:worm_gear"}
+    last = {"round": 2, "candidates": [cand, fell], "accepted": None}
+    stick = {"round": 3, "method": "stick_slip", "candidates": [], "accepted": None}
+    refits = last_round_refits([first, last, stick], EPS_MODEL)
+    assert list(refits) == ["stribeck_friction:motor"]
+    rf = refits["stribeck_friction:motor"]
+    assert rf.values == {"motor.stribeck_friction.static_to_coulomb_ratio": 1.29,
+                         "motor.stribeck_friction.stribeck_velocity": 1.4}
+    assert (rf.share, rf.aic_delta) == (0.069, -14.3)
+    assert last_round_refits([last, first], EPS_MODEL) == {}
+    dropped = {"round": 3, "kind": "backward", "dropped": ["backlash:worm_gear"]}
+    assert last_round_refits([first, last, dropped], EPS_MODEL) == {}
 
 
 def test_effect_sizes_scale_from_the_neutral_value():

@@ -421,7 +421,7 @@ def test_the_resolution_step_predicts_against_the_model_the_structure_rounds_sea
     state = SimpleNamespace(ids=[], p=with_stribeck, p_searched=searched, scales={},
                             model_free_by_stage={}, settings=DiscoverSettings(),
                             accepted=["stribeck_friction:rack"], compensating=lambda: {},
-                            timings={})
+                            timings={}, rounds=[], model=None)
     resolution.resolution_round(state)
     state.p_searched = None
     resolution.resolution_round(state)

@@ -242,21 +242,24 @@ def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
     """One row per (pair, size) of the predicted scores (``resolution.csv``)."""
     columns = ["effect", "component", "stage", "side", "multiple_of_realistic_size",
                "predicted_relative_gain", "predicted_aic_delta", "resolved",
-               "detection_limit_multiple"]
+               "detection_limit_multiple", "refit_relative_gain"]
     if not resolution:
         return pd.DataFrame(columns=columns)
     # side: "realistic" for the realistic size's side of neutral, "other" for the other
-    # side of an effect that acts either way (a power-law exponent above 1)
+    # side of an effect that acts either way (a power-law exponent above 1), "refit" the
+    # prediction at the size the structure test's refit reached (``RefitCheck``)
     return pd.DataFrame([
         {"effect": r.effect, "component": r.component, "stage": r.stage, "side": side,
          "multiple_of_realistic_size": s.multiple,
          **{f"size.{k}": v for k, v in s.values.items()},
          "predicted_relative_gain": s.share, "predicted_aic_delta": s.aic_delta,
          "resolved": limit is not None and s.multiple >= limit,
-         "detection_limit_multiple": limit}
+         "detection_limit_multiple": limit,
+         "refit_relative_gain": r.refit.refit_share if side == "refit" else None}
         for r in resolution
         for side, sizes, limit in (("realistic", r.sizes, r.resolved_from),
-                                   ("other", r.other_side, r.other_side_resolved_from))
+                                   ("other", r.other_side, r.other_side_resolved_from),
+                                   ("refit", [r.refit.predicted] if r.refit else [], None))
         for s in sizes])
 
 
@@ -322,6 +325,14 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     """The detection limit of one side of neutral, in the effect's own unit."""
     sizes = r.other_side if other_side else r.sizes
     limit = r.detection_limit(other_side)
+    c = r.refit
+    if c is not None and c.contradicts and c.other_side == other_side:
+        return (f"**no limit stated**: the structure test's refit reached "
+                f"{size_text(c.predicted, r.size_parameters)} and removed "
+                f"{100 * c.refit_share:.1f} % of its stage (ΔAIC {c.refit_aic_delta:.0f}), where "
+                f"this prediction says {100 * c.predicted.share:.1f} % at that size: these "
+                "tests' output error does not reach the effect as predicted, so they do not "
+                "rule it out at any size")
     if limit is None:
         return "**not resolved** up to " + size_text(sizes[-1], r.size_parameters)
     # resolved already at the smallest size tried: the limit lies at or below it
