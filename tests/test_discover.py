@@ -677,6 +677,51 @@ def test_significance_margin_holds_its_false_alarm_rate():
     assert found >= 0.9, found
 
 
+def test_parts_the_stage_cannot_tell_apart_lead_by_their_share_of_the_body_friction():
+    """Realistic rigs 955 and 921: a rack asymmetry removed 78.38 % of the stage in the
+    motor and in the rack alike, and the catalogue's order named the motor first. Motor
+    and rack turn as one body through the mesh; the part that carries most of the body's
+    sliding friction (referred at equal power: the rack's 270 N against the motor's
+    0.03 N·m × 2200 rad/m = 66 N) leads. A clear winner, or a twin whose size the range cut
+    short, keeps its place."""
+    from types import SimpleNamespace
+
+    import mbst.discovery.rounds.catalogue as catalogue_mod
+    from mbst.discovery.data import TestResidual
+    from mbst.systems.eps.params import PARAM_SPECS
+
+    t = np.linspace(0.0, 4.0, 400)
+    rack_speed = 0.02 * np.cos(t)  # m/s; the motor turns N / r = 2200 rad per m of rack
+    res = TestResidual(id="s2", scenario="free_tie_rods", role="identification",
+                       motor="passive", dt_s=0.01, time_s=t, angle_rad=np.sin(t),
+                       omega_rad_per_s=np.cos(t), measured={}, simulated={},
+                       states={"rack_speed_m_per_s": rack_speed,
+                               "motor_speed_rad_per_s": 2200.0 * rack_speed})
+    p = np.array([s.default for s in PARAM_SPECS])
+    idx = EPS_MODEL.param_index
+
+    def cand(component, gain, ratio=0.8):
+        key = f"asymmetric_friction:{component}"
+        q = p.copy()
+        q[idx[f"{component}.asymmetric_friction.ratio"]] = ratio
+        return CandidateScore(key=key, effect="asymmetric_friction", component=component,
+                              stage="free_tie_rods", tests=["s2"], free=[], k_effect=1,
+                              cost_base=1.0, cost=1.0 - gain, n_eff=500.0,
+                              aic_delta=-500.0 * gain, params=q)
+
+    state = SimpleNamespace(model=EPS_MODEL, residuals=[res], p=p)
+    motor, rack = cand("motor", 0.7838), cand("rack", 0.7838)
+    other = cand("steering_column", 0.5)
+    assert [s.component for s in catalogue_mod._body_share_first(state, [motor, rack, other])
+            ] == ["rack", "motor", "steering_column"]
+    # a motor that clearly fits better keeps its lead; so does one whose rack twin's size
+    # ended on the end of its range (its cost only a bound)
+    clear = cand("motor", 0.80)
+    assert catalogue_mod._body_share_first(state, [clear, rack])[0] is clear
+    bound = cand("rack", 0.7838, ratio=0.25)
+    assert catalogue_mod._body_share_first(state, [motor, bound])[0] is motor
+
+
 def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
     """A look-alike that fits some test of the stage better than the round's winner is
     refitted from the winner's stage fit, and the winner from its; a candidate the winner

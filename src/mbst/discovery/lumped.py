@@ -69,6 +69,21 @@ def state_body_sizes(findings: list[Finding], residuals: list[TestResidual],
             f"friction; the {f.component}'s own {headline} in the fitted split is {own:.3g}")
 
 
+def body_shares(parts: list[str], tests: list[TestResidual], model: ModelDefinition,
+                p: np.ndarray) -> dict[str, float]:
+    """Each part's share of the body's sliding friction: its Coulomb level referred to the
+    first part's coordinate at equal power, over the sum (empty where the family states no
+    levels or the parts have no speeds)."""
+    if model.coulomb_level is None:
+        return {}
+    referral = _referral(parts, tests, model)
+    if len(referral) < len(parts):
+        return {}
+    level = {c: s * abs(model.coulomb_level(p, c, math.inf)) for c, s in referral.items()}
+    total = sum(level.values())
+    return {c: v / total for c, v in level.items()} if total > 0 else {}
+
+
 def _referral(parts: list[str], tests: list[TestResidual], model: ModelDefinition
               ) -> dict[str, float]:
     """Each part's speed over the first part's (least squares over the stage's tests): the

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 
-from mbst.discovery import acceptance, extension
+from mbst.discovery import acceptance, extension, lumped
 from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.rounds.screen import screen
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
@@ -65,7 +65,7 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     settings = state.settings
     if scores:  # the winner's stage as the screening scored it (its base refit done)
         scorer = scorers[scores[0].stage]
-        scores = _cross_seeded(state, scorer, scores)
+        scores = _body_share_first(state, _cross_seeded(state, scorer, scores))
     rec = {"round": rnd + 1, "candidates": [score_record(s) for s in scores],
            "accepted": None, "reason": ""}
     state.rounds.append(rec)
@@ -194,6 +194,32 @@ def _cross_seeded(state: DiscoveryState, scorer: StageScorer, scores: list[Candi
         won = scorer.reseeded(effects[best.key], won, r)
     new[best.key] = won
     return sorted((new.get(s.key, s) for s in scores), key=rank_key)
+
+
+def _body_share_first(state: DiscoveryState, scores: list[CandidateScore]
+                      ) -> list[CandidateScore]:
+    """Among parts of one body that the stage cannot tell apart for the winner's effect
+    (``acceptance.tied_components``: alike to ``TIE_GAIN``, sizes inside their ranges), the
+    part carrying most of the body's sliding friction leads: the data do not say which part
+    has the effect, and a change in the body's friction law sits, a priori, where most of
+    that friction is. Equal shares had been ranked by the catalogue's order, the motor first
+    (realistic rigs 955 and 921: a rack asymmetry named "motor or rack", 78.38 % both).
+    The finding still names the other part beside it, at even odds."""
+    best = scores[0]
+    residuals = {r.id: r for r in state.residuals}
+    tied = [s for s, _ in acceptance.tied_components(best, scores, residuals, state.model)
+            if not s.fell_back and not acceptance.size_on_bound(s, state.model)]
+    if not tied or acceptance.size_on_bound(best, state.model):
+        return scores
+    parts = [best.component] + [s.component for s in tied]
+    tests = [residuals[t] for t in best.tests if t in residuals]
+    share = lumped.body_shares(parts, tests, state.model, state.p)
+    lead = max([best, *tied], key=lambda s: share.get(s.component, 0.0))
+    if lead is best or share.get(lead.component, 0.0) <= share.get(best.component, 0.0):
+        return scores
+    log.info("%s and %s fit alike; %s carries %.0f %% of their body's friction and leads",
+             best.key, lead.key, lead.component, 100 * share[lead.component])
+    return [lead] + [s for s in scores if s is not lead]
 
 
 def _aic_drop(state: DiscoveryState, k: int) -> float:
