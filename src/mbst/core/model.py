@@ -194,6 +194,11 @@ class ModelDefinition:
         frees both and is told neither holds the first at partner × their ratio at its
         start (the typical one, where the start has none) and fits the sum; a value or
         prior the campaign states for either sets the split instead.
+    sensor_lags
+        Measured channel → the parameter of its sensor's own first-order lag (s), held at
+        0 by identification and never a finding: the structure rounds refit it as a rival
+        of each winner, and a misfit the lag explains as well is not named
+        (``discovery/sensor_lag.py``).
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -228,6 +233,7 @@ class ModelDefinition:
     simulate_tests: Callable[[list, list[np.ndarray]], list[list[dict]]] | None = None
     row_steps: Callable[[Any, np.ndarray], np.ndarray] | None = None
     ties: dict[str, tuple[str, float]] = field(default_factory=dict)
+    sensor_lags: dict[str, str] = field(default_factory=dict)
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 
-from mbst.discovery import acceptance, extension, lumped
+from mbst.discovery import acceptance, extension, lumped, sensor_lag
 from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.rounds.screen import screen
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
@@ -74,7 +74,12 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
                          "share of what is left" if shortlist is not None else
                          "no candidate can act in the scenarios tested")
         return None
+    scores, lags = _past_sensor_lags(state, scorers, scores, rec)
+    if not scores:
+        rec["reason"] = "; ".join(d["reason"] for d in rec["sensor_lag_declined"])
+        return None
     best = scores[0]
+    scorer = scorers[best.stage]
     drop = _aic_drop(state, best.k_effect)
     rec["aic_drop_needed"] = round(drop, 2)
     short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop)
@@ -94,8 +99,10 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     rec["identification_cost"] = {"before": cost_before, "after": state.cost}
     ties = acceptance.tied_components(best, scores, {r.id: r for r in state.residuals},
                                       state.model)
-    boot = acceptance.ranking_bootstrap(scorer, best, scores, settings.min_relative_gain,
-                                        settings.identify.seed, tuple(s for s, _ in ties))
+    # the sensors' own lags are rivals like any other (``sensor_lag.py``)
+    boot = acceptance.ranking_bootstrap(scorer, best, [best, *lags, *scores[1:]],
+                                        settings.min_relative_gain, settings.identify.seed,
+                                        tuple(s for s, _ in ties))
     boot["body_twins"] = acceptance.body_twins_within_reach(
         best, scores, boot, {r.id: r for r in state.residuals}, state.model,
         (settings.min_relative_gain, drop))
@@ -220,6 +227,32 @@ def _body_share_first(state: DiscoveryState, scores: list[CandidateScore]
     log.info("%s and %s fit alike; %s carries %.0f %% of their body's friction and leads",
              best.key, lead.key, lead.component, 100 * share[lead.component])
     return [lead] + [s for s in scores if s is not lead]
+
+
+def _past_sensor_lags(state: DiscoveryState, scorers: dict[str, StageScorer],
+                      scores: list[CandidateScore], rec: dict
+                      ) -> tuple[list[CandidateScore], list[CandidateScore]]:
+    """The round's candidates less every stage whose winner a sensor's own lag matches
+    (``sensor_lag.matching``; recorded in ``rec``), and the lags refitted in the stage that
+    leads then (rivals for its ranking bootstrap). A winner short of the margins is left
+    to them."""
+    settings = state.settings
+    while scores:
+        best = scores[0]
+        if acceptance.margin_shortfall(best, settings.min_relative_gain,
+                                       _aic_drop(state, best.k_effect)) is not None:
+            return scores, []
+        lags = sensor_lag.rivals(scorers[best.stage], state.model, best.n_eff)
+        if lags:
+            rec.setdefault("sensor_lag", []).extend(score_record(s) for s in lags)
+        lag = sensor_lag.matching(best, lags)
+        if lag is None:
+            return scores, lags
+        gone = sensor_lag.declined(best, lag)
+        log.info("round %d: %s", rec["round"], gone["reason"])
+        rec.setdefault("sensor_lag_declined", []).append(gone)
+        scores = [s for s in scores if s.stage != best.stage]
+    return scores, []
 
 
 def _aic_drop(state: DiscoveryState, k: int) -> float:

@@ -32,6 +32,7 @@ from mbst.systems.eps.params import (
     EFFECT_CATALOGUE,
     PARAM_INDEX,
     PARAM_SPECS,
+    TORQUE_SENSOR_LAG,
     friction_base,
 )
 
@@ -543,7 +544,7 @@ def row_steps(pt, ps: np.ndarray) -> np.ndarray:
 
 
 def _channels(pt, raw: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:
-    sens = eps.sensors_from_raw(raw, p, pt.scenario)
+    sens = eps.sensors_from_raw(raw, p, pt.scenario, pt.dt_s)
     for i, name in enumerate(K.OUTPUT_NAMES):
         sens[f"internal.{name}"] = raw[:, i]
     return sens
@@ -660,6 +661,8 @@ EPS_MODEL = ModelDefinition(
     element_speeds={"motor": "motor_speed_rad_per_s", "rack": "rack_speed_m_per_s"},
     coulomb_level=coulomb_level,
     ties=EPS_TIES,
+    # eps-model.md: "a torque sensor's own filter lags by a few ms"
+    sensor_lags={"steering_torque_nm": TORQUE_SENSOR_LAG},
 )
 
 # the family's definition, as the registry looks it up (core.family.SystemFamily.model)

@@ -11,11 +11,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from mbst.core.filtering import angular_velocity
+from mbst.core.filtering import angular_velocity, exponential_filter
 from mbst.systems.eps import kernel as K
 from mbst.systems.eps.params import (
     N_PARAMS,
     PARAM_INDEX,
+    TORQUE_SENSOR_LAG,
     friction_param,
     rack_is_separate_body,
     vector_from,
@@ -206,8 +207,10 @@ def simulate_raw_batch(
                             ps, scen, mode, ns, x0s, dt_s)
 
 
-def sensors_from_raw(raw: np.ndarray, p: np.ndarray, scenario: str) -> dict[str, np.ndarray]:
-    """Sensor channels (with campaign-wide offsets) from raw model outputs."""
+def sensors_from_raw(raw: np.ndarray, p: np.ndarray, scenario: str, dt_s: float = 0.0
+                     ) -> dict[str, np.ndarray]:
+    """Sensor channels (with campaign-wide offsets) from raw model outputs; with the sample
+    period ``dt_s``, the torque sensor's own lag where the vector sets one."""
     g = lambda name: p[PARAM_INDEX[name]]
     half_tie = 0.5 * raw[:, K.O_FTIE]
     out = {
@@ -218,6 +221,9 @@ def sensors_from_raw(raw: np.ndarray, p: np.ndarray, scenario: str) -> dict[str,
         "motor_angle_rad": raw[:, K.O_THM],
         "motor_current_a": raw[:, K.O_TM] / g("motor_torque_constant_nm_per_a"),
     }
+    if dt_s > 0.0 and g(TORQUE_SENSOR_LAG) > 0.0:
+        out["steering_torque_nm"] = exponential_filter(out["steering_torque_nm"], dt_s,
+                                                       g(TORQUE_SENSOR_LAG))
     for ch, name in SENSOR_OFFSETS.items():
         out[ch] = out[ch] + g(name)
     return out
@@ -255,7 +261,8 @@ def simulate(
     """
     p = as_vector(params)
     raw = simulate_raw(scenario, motor, time_s, angle_rad, p, angular_velocity_rad_per_s, n_sub)
-    out = sensors_from_raw(raw, p, scenario)
+    out = sensors_from_raw(raw, p, scenario, float(time_s[1] - time_s[0]) if len(time_s) > 1
+                           else 0.0)
     for i, name in enumerate(K.OUTPUT_NAMES):
         out[f"internal.{name}"] = raw[:, i]
     return out
@@ -311,4 +318,4 @@ def outputs_along(
     for i in range(len(t)):
         K.outputs(np.ascontiguousarray(states[i]), th[i], om[i], p, scen, mode, force, aux, row)
         raw[i] = row
-    return sensors_from_raw(raw, p, scenario)
+    return sensors_from_raw(raw, p, scenario, float(t[1] - t[0]) if len(t) > 1 else 0.0)
