@@ -18,9 +18,14 @@ SETTINGS = dict(max_effects=1, sparse=False, neural=False)
 # motor, 99.31 vs 99.22 % in the rack; rack presliding 84.73 vs 84.79 % for the motor),
 # so which one is named is a coin toss. The finding must name the effect and say that
 # it cannot decide between the two (``indistinguishable_from``). A motor Dahl term is
-# not mimicked by the rack's (28.0 %, no rack runner-up): named alone.
+# not mimicked by the rack's (28.0 %, no rack runner-up): named alone. A rack Stribeck
+# makes the rig stick-slip, and the envelope test fits it in either part (motor 98 %, rack
+# 92 % of the envelope misfit, seed 1): since stop 60 a one-body twin that clears the
+# margins on its own is named beside the winner ("COMPONENT UNDECIDED", even odds), and
+# this sweep (slow) still asked for the rack alone and the older "NOT DECIDED" wording
+# (both failing at 5bae68e, found 2026-11-27).
 ONE_BODY = {"asymmetric_friction:motor", "asymmetric_friction:rack",
-            "presliding_hysteresis:rack"}
+            "presliding_hysteresis:rack", "stribeck_friction:rack"}
 
 
 def run_case(tmp_path_factory, effects: list[str], seed: int = 1, plan=compact_plan, **kw):
@@ -38,7 +43,7 @@ def assert_first_finding(result, key: str, truth: dict) -> None:
     assert f.effect == effect, f.evidence
     if key in ONE_BODY:
         assert sorted([f.component, *f.indistinguishable_from]) == ["motor", "rack"], f.evidence
-        assert "NOT DECIDED" in f.evidence
+        assert "NOT DECIDED" in f.evidence or "COMPONENT UNDECIDED" in f.evidence, f.evidence
     else:
         assert f.component == component, f.evidence
     if f.effect == "backlash":
