@@ -203,6 +203,11 @@ def test_a_limit_the_structure_tests_own_refit_contradicts_is_not_stated():
     text = limit_text(r, False)
     assert "no limit stated" in text and "6.9 %" in text and "18.0 %" in text
     assert "no limit stated" not in limit_text(r, True)
+    from mbst.report.discovery_figures import _side_label  # the figure's label says it too
+
+    assert _side_label(r, False) == ("no limit stated (its refit removed 7 % where 18 % is "
+                                     "predicted)")
+    assert _side_label(r, True) == "from 0.2×"
     table = resolution_table([r])
     refit_row = table[table.side == "refit"]
     assert refit_row.refit_relative_gain.item() == 0.069

@@ -22,6 +22,7 @@ from mbst.discovery.structure import stage_for
 from mbst.io.campaign import read_campaign
 from mbst.report.discovery import (
     discovery_record,
+    markdown_summary,
     resolution_lines,
     resolution_table,
     write_discover_outputs,
@@ -153,6 +154,8 @@ def test_a_torque_sensor_lag_is_not_named_as_a_catalogue_effect(tmp_path_factory
     gone = result.rounds[0]["sensor_lag_declined"]
     assert gone[0]["stage"] == "blocked_column" and gone[0]["sensor"] == "steering_torque_nm"
     assert 1.0 < gone[0]["lag_ms"] < 6.0
+    # ... and the report says so: the answer is not "at the noise floor" alone
+    assert f"Round 1, not named: {gone[0]['reason']}." in markdown_summary(result)
 
 
 def _check_resolution_report(result, out) -> None:

@@ -110,9 +110,9 @@ def resolution_bars(result, path: Path) -> bool:
     most = max(s.multiple for r in res for s in r.sizes)
     ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
                zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
-    ax.set_yticks(y, [f"{r.key} ({r.stage}) — " + _limit_label(r.sizes, r.resolved_from) + (
-        "; the other way " + _limit_label(r.other_side, r.other_side_resolved_from, False)
-        if r.other_side else "") for r in res], fontsize=7)
+    ax.set_yticks(y, [f"{r.key} ({r.stage}) — " + _side_label(r, False) + (
+        "; the other way " + _side_label(r, True) if r.other_side else "") for r in res],
+        fontsize=7)
     ax.axvline(100 * result_margin(result), color="tab:red", ls="--", lw=1,
                label=f"acceptance margin (and {aic_margin_text(result)})")
     ax.set_xlim(0, 100)
@@ -128,6 +128,18 @@ def resolution_bars(result, path: Path) -> bool:
     fig.tight_layout(pad=1.5)
     plots.save_figure(fig, path, tight=True)  # a pair's limits both ways make long labels
     return True
+
+
+def _side_label(r, other_side: bool) -> str:
+    """One side's label: its limit, or why none is stated where the structure test's own
+    refit contradicts the prediction (``resolution.RefitCheck``)."""
+    c = r.refit
+    if c is not None and c.contradicts and c.other_side == other_side:
+        return (f"no limit stated (its refit removed {100 * c.refit_share:.0f} % where "
+                f"{100 * c.predicted.share:.0f} % is predicted)")
+    if other_side:
+        return _limit_label(r.other_side, r.other_side_resolved_from, False)
+    return _limit_label(r.sizes, r.resolved_from)
 
 
 def _limit_label(sizes: list, resolved_from: float | None, detail: bool = True) -> str:

@@ -76,7 +76,8 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
         return None
     scores, lags = _past_sensor_lags(state, scorers, scores, rec)
     if not scores:
-        rec["reason"] = "; ".join(d["reason"] for d in rec["sensor_lag_declined"])
+        rec["reason"] = ("every stage's winner that cleared the margins is matched by a "
+                         "sensor's own lag (``sensor_lag_declined``)")
         return None
     best = scores[0]
     scorer = scorers[best.stage]
