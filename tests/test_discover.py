@@ -738,7 +738,7 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     from types import SimpleNamespace
 
     import mbst.discovery.rounds.catalogue as catalogue_mod
-    from mbst.discovery import sensor_lag
+    from mbst.discovery import rivals as rivals_mod
 
     def cand(key, stage, gain):
         return CandidateScore(key=key, effect=key.split(":")[0], component=key.split(":")[1],
@@ -756,26 +756,26 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
         refitted.append(scorer)
         return [cand("sensor_lag:steering_torque_nm", scorer, lag_gain[scorer])]
 
-    monkeypatch.setattr(sensor_lag, "rivals", rivals)
-    monkeypatch.setattr(catalogue_mod, "_aic_drop", lambda state, k: 10.0)
+    monkeypatch.setattr(rivals_mod, "rivals", rivals)
+    monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.0)
     state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL)
     scorers = {"blocked_column": "blocked_column", "free_tie_rods": "free_tie_rods"}
     rec = {"round": 1}
-    left, lags = catalogue_mod._past_sensor_lags(state, scorers, [column, dahl, asym], rec)
+    left, lags = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], rec)
     assert left == [dahl, asym] and [s.relative_gain for s in lags] == [pytest.approx(0.10)]
-    gone = rec["sensor_lag_declined"]
+    gone = rec["rival_declined"]
     assert [g["key"] for g in gone] == [column.key]
     assert "3.6 ms lag of the steering_torque_nm sensor alone 27.2 %" in gone[0]["reason"]
-    assert len(rec["sensor_lag"]) == 2
+    assert len(rec["rivals"]) == 2
     # a lag that matches every stage's winner leaves nothing to name
     lag_gain["free_tie_rods"] = 0.225
-    left, lags = catalogue_mod._past_sensor_lags(state, scorers, [column, dahl, asym], {
+    left, lags = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], {
         "round": 1})
     assert left == [] and lags == []
     # a winner short of the margins is left to them, with no lag refitted
     refitted.clear()
     weak = cand("asymmetric_friction:rack", "free_tie_rods", 0.05)
-    assert catalogue_mod._past_sensor_lags(state, scorers, [weak], {"round": 1}) == ([weak], [])
+    assert catalogue_mod._past_rivals(state, scorers, [weak], {"round": 1}) == ([weak], [])
     assert refitted == []
 
 
@@ -816,7 +816,7 @@ def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
         return c
 
     state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL, residuals=[])
-    monkeypatch.setattr(catalogue_mod, "_aic_drop", lambda state, k: 10.0)
+    monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.0)
     monkeypatch.setattr(catalogue_mod.acceptance, "moves_with",
                         lambda best, comp, res, model: {best.component, comp} ==
                         {"motor", "rack"})

@@ -151,7 +151,14 @@ def test_a_torque_sensor_lag_is_not_named_as_a_catalogue_effect(tmp_path_factory
     named = [(f.effect, f.component, f.confidence) for f in result.findings
              if f.effect != "unexplained"]
     assert named == [], [f.evidence for f in result.findings]
-    gone = result.rounds[0]["sensor_lag_declined"]
+    # ... it is said as what it is: the lag, at its size, and the model with it predicts
+    # the held-out control better (before 2026-11-27: no finding at all)
+    lag = [f.signature for f in result.findings if f.effect == "unexplained"]
+    assert lag and (lag[0]["kind"], lag[0]["quantity"]) == ("lag", "steering_torque_nm")
+    assert 0.0015 < lag[0]["lag_s"] < 0.0045, lag[0]
+    means = result.comparison.groupby("model")["fit_percent"].mean()
+    assert means["physics+learned"] > means["base"]
+    gone = result.rounds[0]["rival_declined"]
     assert gone[0]["stage"] == "blocked_column" and gone[0]["sensor"] == "steering_torque_nm"
     assert 1.0 < gone[0]["lag_ms"] < 6.0
     # ... and the report says so: the answer is not "at the noise floor" alone

@@ -24,8 +24,10 @@ from mbst.systems.eps.bench import (
     NOISE_RMS,
     BenchRecipe,
     _channels_for,
+    compact_plan,
     demo_plan,
     input_profile,
+    run_bench,
 )
 from mbst.systems.eps.params import EFFECTS, PARAM_INDEX, vector_from
 
@@ -415,3 +417,27 @@ def test_the_torque_sensors_own_lag_filters_the_torque_channel_alone():
     assert np.max(np.abs(b["steering_torque_nm"] - a["steering_torque_nm"])) > 0.01
     for ch in ("rack_position_m", "tie_rod_force_left_n"):
         np.testing.assert_array_equal(a[ch], b[ch])
+
+
+def test_a_drift_over_the_campaign_runs_each_test_at_its_own_friction_levels(tmp_path):
+    """``friction.campaign_drift`` (held at 0 by identification, refitted by discovery as a
+    rival of each winner): a test at place x of the running order (−½ first … ½ last) runs
+    with every Coulomb level × (1 + drift·x), through the one simulate path."""
+    from mbst.identify.fitting import prepare_test, simulate_twin
+    from mbst.io.campaign import read_campaign
+
+    camp = read_campaign(run_bench(tmp_path, BenchRecipe(effects=[], seed=0,
+                                                         plan=compact_plan())))
+    pts = [prepare_test(camp, s, 0.005) for s in camp.tests]
+    assert [pt.place for pt in pts] == pytest.approx(np.linspace(-0.5, 0.5, len(pts)))
+    model = pts[0].model
+    drift, levels = model.campaign_drift
+    assert "rack.coulomb_n" in levels and "motor.coulomb_nm" in levels
+    p = model.vector_from({drift: -0.2})
+    for pt, factor in ((pts[0], 1.1), (pts[-1], 0.9)):
+        by_hand = model.vector_from({n: factor * p[model.param_index[n]] for n in levels})
+        a, b = simulate_twin(pt, p), simulate_twin(pt, by_hand)
+        for ch in pt.measured:
+            np.testing.assert_array_equal(a[ch], b[ch])
+        still = simulate_twin(pt, model.vector_from({}))
+        assert np.max(np.abs(still["steering_torque_nm"] - a["steering_torque_nm"])) > 1e-3

@@ -213,17 +213,18 @@ def test_the_unexplained_round_is_silent_on_a_clean_rig(tmp_path_factory):
     assert result.signatures and not any(s.structured for s in result.signatures)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "below the noise floor since the floor counts the input sensor's noise through the "
-    "model (2026-11-25): the drift group explains 0.0197 N·m of the torque residual "
-    "(22.9 % held out vs 14.1 % chance), the floor is 0.0256 N·m (the sensor's own 0.009); "
-    "discovery names nothing with confidence ≥ 0.5 (rack position-dependent friction 0.16)"))
+@pytest.mark.slow  # ~2.5 min
 def test_friction_that_drifts_over_the_campaign_is_described_not_named(tmp_path_factory):
+    """Coulomb levels falling 30 % as the rig warms (bench time constant 5 min) had a
+    position-dependent rack friction named at 0.30 (22.5 % of the free-tie-rods stage;
+    seed 1, 2026-11-27), and the generic library's drift group stayed under the noise floor.
+    The drift of the levels over the running order, refitted as a rival, removes 76 %: an
+    unexplained drift with its size, levels falling from the first test to the last."""
     from mbst.systems.eps.bench import compact_plan
 
     result = _outside(tmp_path_factory, compact_plan(), friction_drift=0.3)
-    _check_outside(result, "drift", "time")
+    sig = _check_outside(result, "drift", "time")
+    assert -0.3 < sig["change"] < -0.05, sig
 
 
 @pytest.mark.slow

@@ -198,7 +198,13 @@ class ModelDefinition:
         Measured channel → the parameter of its sensor's own first-order lag (s), held at
         0 by identification and never a finding: the structure rounds refit it as a rival
         of each winner, and a misfit the lag explains as well is not named
-        (``discovery/sensor_lag.py``).
+        (``discovery/rivals.py``).
+    campaign_drift
+        (drift parameter, the levels it scales): the rig's friction levels as a test sees
+        them at its place in the campaign's running order (−½ first … ½ last), each
+        level × (1 + drift · place). Held at 0 by identification and never a catalogue
+        name: the structure rounds refit it as a rival of each winner (the rig warming
+        up, ``discovery/rivals.py``); ``None``: the family declares no such drift.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -234,6 +240,7 @@ class ModelDefinition:
     row_steps: Callable[[Any, np.ndarray], np.ndarray] | None = None
     ties: dict[str, tuple[str, float]] = field(default_factory=dict)
     sensor_lags: dict[str, str] = field(default_factory=dict)
+    campaign_drift: tuple[str, tuple[str, ...]] | None = None
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 
@@ -263,6 +270,21 @@ class ModelDefinition:
                 raise KeyError(f"unknown {self.name} model parameter '{name}'")
             p[self.param_index[name]] = float(v)
         return p
+
+    def at_place(self, ps: np.ndarray, place: float) -> np.ndarray:
+        """Parameter rows ``ps`` as a test at ``place`` in the running order runs them
+        (``campaign_drift``); ``ps`` itself where no row drifts."""
+        if self.campaign_drift is None or place == 0.0:
+            return ps
+        drift, levels = self.campaign_drift
+        ps = np.atleast_2d(ps)
+        d = ps[:, self.param_index[drift]]
+        if not np.any(d):
+            return ps
+        out = np.array(ps, dtype=np.float64, copy=True)
+        idx = [self.param_index[n] for n in levels]
+        out[:, idx] *= (1.0 + d * place)[:, None]
+        return out
 
     def as_dict(self, p: np.ndarray, kinds: tuple[str, ...] | None = None) -> dict[str, float]:
         return {s.name: float(p[i]) for i, s in enumerate(self.param_specs)

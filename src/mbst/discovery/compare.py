@@ -27,6 +27,13 @@ class Learned:
     signatures: list  # ChannelSignature, structured only
     places: dict[str, float]  # each test's place in the campaign
     input_name: str
+    # the physics under the learned terms: the extended model with a reality outside the
+    # catalogue refitted (``DiscoveryState.rival_physics``); None: the extended model
+    physics: np.ndarray | None = None
+
+    @property
+    def any(self) -> bool:
+        return bool(self.signatures) or self.physics is not None
 
     def twins(self, ctrl_res: list[TestResidual]) -> dict[str, dict[str, np.ndarray]]:
         from mbst.discovery.signature import learned_term
@@ -75,9 +82,9 @@ def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
     add("extended", ext_tw)
     ctrl_res = [residual_data(pt, base.params, base_twins[pt.id]) for pt in controls]
     failures: list[str] = []
-    if learned is not None and learned.signatures:
+    if learned is not None and learned.any:
         _optional("physics+learned", lambda: learned.twins(
-            [residual_data(pt, p_ext, ext_tw[pt.id]) for pt in controls]), add, failures)
+            _physics_twins(controls, p_ext, ext_tw, learned.physics)), add, failures)
     if settings.wants(base.model, "sparse"):
         _optional("sindy", lambda: _sindy_twins(id_res, ctrl_res, failures), add, failures)
     if neural_model is not None:
@@ -89,6 +96,16 @@ def compare(campaign: Campaign, base: IdentifyResult, p_ext: np.ndarray,
         add("true", true_tw)
     df = pd.DataFrame(rows, columns=["test", "channel", "model", "fit_percent"])
     return Comparison(df, twins, base_correlation, failures)
+
+
+def _physics_twins(controls: list, p_ext: np.ndarray, ext_tw: dict,
+                   physics: np.ndarray | None) -> list[TestResidual]:
+    """The controls under the learned terms' physics: the extended model, or it with a
+    reality outside the catalogue refitted."""
+    if physics is None:
+        return [residual_data(pt, p_ext, ext_tw[pt.id]) for pt in controls]
+    _, tw = correlate(controls, physics)
+    return [residual_data(pt, physics, tw[pt.id]) for pt in controls]
 
 
 def _sindy_twins(id_res: list[TestResidual], ctrl_res: list[TestResidual],

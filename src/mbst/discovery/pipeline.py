@@ -217,7 +217,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
     t0 = time.perf_counter()
     places = campaign_places(state)
     learned = Learned([s for s in state.signatures if s.structured], places,
-                      driving_input(model))
+                      driving_input(model), state.rival_physics)
     cmp = compare(state.campaign, state.base, state.p, state.residuals, settings, neural_model,
                   learned)
     timings["compare_s"] = time.perf_counter() - t0

@@ -156,6 +156,10 @@ class DiscoveryState:
     # what the extended model's residual correlates with, per channel (rounds/unexplained.py)
     signatures: list = field(default_factory=list)
     extended_residuals: list[TestResidual] = field(default_factory=list)
+    # the extended model with a reality outside the catalogue refitted in its stage (a
+    # sensor's lag, a drift over the campaign: ``rounds/rival_findings.py``); the physics
+    # under the "physics + learned" row; ``None``: no such reality found
+    rival_physics: np.ndarray | None = None
     # a round or method that failed on the way (reported; never the answer)
     failures: list[str] = field(default_factory=list)
     # the model the structure rounds last searched (``None``: they did not run); a later

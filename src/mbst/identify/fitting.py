@@ -54,6 +54,9 @@ class PreparedTest:
     # rms of what the input sensor's noise, through the model, leaves on each channel
     # (``input_noise_floors``; empty until discovery measures it)
     input_floor: dict[str, float] = field(default_factory=dict, repr=False)
+    # the test's place in the campaign's running order, −½ (first) … ½ (last): where a
+    # rig that drifts over the campaign stands (``ModelDefinition.campaign_drift``)
+    place: float = 0.0
 
     @property
     def angle_in_rad(self) -> np.ndarray:
@@ -95,7 +98,10 @@ def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
             f"{done.get('from', '?') if isinstance(done, dict) else done}); fit the raw "
             "campaign it came from, or pass --tau 0",
             campaign=campaign.name, path=campaign.path / "campaign.yaml")
-    return prepare_frame(campaign.model(), campaign.frame(spec.id), spec, tau_s, input_window_s)
+    pt = prepare_frame(campaign.model(), campaign.frame(spec.id), spec, tau_s, input_window_s)
+    ids = [s.id for s in campaign.tests]
+    pt.place = ids.index(spec.id) / max(len(ids) - 1, 1) - 0.5 if spec.id in ids else 0.0
+    return pt
 
 
 def prepare_frame(model: ModelDefinition, df: pd.DataFrame, spec: TestSpec, tau_s: float,
@@ -160,6 +166,8 @@ def twins_of_tests(pts: list[PreparedTest], pss: list[np.ndarray]
     if not pts:
         return []
     many = pts[0].model.simulate_tests
+    # a rig that drifts over the campaign runs each test at its own levels
+    pss = [pt.model.at_place(np.atleast_2d(ps), pt.place) for pt, ps in zip(pts, pss, strict=True)]
     sims = many(pts, [np.atleast_2d(ps) for ps in pss]) if many is not None else [
         pt.model.simulate_batch(pt, ps) for pt, ps in zip(pts, pss, strict=True)]
     return [[_filtered(pt, sim) for sim in rows] for pt, rows in zip(pts, sims, strict=True)]

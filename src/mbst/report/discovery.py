@@ -178,7 +178,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
                          " (of what these tests can resolve: see below)."
                          if result.resolution else "."))
     for r in result.rounds:
-        for gone in r.get("sensor_lag_declined", []):  # a winner a sensor's lag matched
+        for gone in r.get("rival_declined", []):  # a winner a sensor's lag or a drift matched
             lines += ["", f"Round {r['round']}, not named: {gone['reason']}."]
         if r.get("kind") == "backward":
             lines += ["", f"{r['reason'][0].upper()}{r['reason'][1:]}."]

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 
-from mbst.discovery import acceptance, extension, lumped, sensor_lag
+from mbst.discovery import acceptance, extension, lumped, rivals
 from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.rounds.screen import screen
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
@@ -74,14 +74,14 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
                          "share of what is left" if shortlist is not None else
                          "no candidate can act in the scenarios tested")
         return None
-    scores, lags = _past_sensor_lags(state, scorers, scores, rec)
+    scores, lags = _past_rivals(state, scorers, scores, rec)
     if not scores:
         rec["reason"] = ("every stage's winner that cleared the margins is matched by a "
-                         "sensor's own lag (``sensor_lag_declined``)")
+                         "sensor's own lag or a drift over the campaign (``rival_declined``)")
         return None
     best = scores[0]
     scorer = scorers[best.stage]
-    drop = _aic_drop(state, best.k_effect)
+    drop = aic_drop(state, best.k_effect)
     rec["aic_drop_needed"] = round(drop, 2)
     short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop)
     if short is not None:
@@ -100,7 +100,7 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     rec["identification_cost"] = {"before": cost_before, "after": state.cost}
     ties = acceptance.tied_components(best, scores, {r.id: r for r in state.residuals},
                                       state.model)
-    # the sensors' own lags are rivals like any other (``sensor_lag.py``)
+    # a sensor's lag and a drift over the campaign are rivals like any other (``rivals.py``)
     boot = acceptance.ranking_bootstrap(scorer, best, [best, *lags, *scores[1:]],
                                         settings.min_relative_gain, settings.identify.seed,
                                         tuple(s for s, _ in ties))
@@ -127,7 +127,7 @@ def _next_candidates(state: DiscoveryState, scores: list[CandidateScore], rec: d
     t0 = time.perf_counter()
     scorers: dict[str, StageScorer] = {}
     try:
-        screened = screen(state, scores, partial(_stage_scorer, state), scorers)
+        screened = screen(state, scores, partial(stage_scorer, state), scorers)
     except Exception as exc:  # the screen picks candidates; it must not sink the round
         log.warning("the screen of round %d failed (%s: %s): rescoring what showed evidence",
                     rec["round"], type(exc).__name__, exc)
@@ -135,14 +135,14 @@ def _next_candidates(state: DiscoveryState, scores: list[CandidateScore], rec: d
                               f"{type(exc).__name__}: {exc}")
         return NextRound({s.key for s in scores[1:]
                           if acceptance.shows_evidence(s, settings.min_relative_gain,
-                                                       _aic_drop(state, s.k_effect))})
+                                                       aic_drop(state, s.k_effect))})
     needed = acceptance.EVIDENCE_SHARE_OF_MARGIN * settings.min_relative_gain
     rec["screen"] = {"predicted_gain": {s.key: round(s.predicted_gain, 5) for s in screened},
                      "needed": needed, "wall_s": round(time.perf_counter() - t0, 2)}
     return NextRound({s.key for s in screened if s.predicted_gain >= needed}, scorers)
 
 
-def _stage_scorer(state: DiscoveryState, stage: str) -> StageScorer:
+def stage_scorer(state: DiscoveryState, stage: str) -> StageScorer:
     """A stage's scorer as the rounds build it, at the model as it stands."""
     settings = state.settings
     return StageScorer(state.model.stage_tests(stage, state.ids), stage, state.p,
@@ -180,7 +180,7 @@ def _contenders(state: DiscoveryState, best: CandidateScore, scores: list[Candid
     return [s for s in scores[1:]
             if s.stage == best.stage and not s.fell_back
             and acceptance.shows_evidence(s, state.settings.min_relative_gain,
-                                          _aic_drop(state, s.k_effect))
+                                          aic_drop(state, s.k_effect))
             and (one_body(s)
                  or any(s.per_test_cost[t] < best.per_test_cost[t] for t in s.tests))
             ][:MAX_CONTENDERS]
@@ -230,33 +230,33 @@ def _body_share_first(state: DiscoveryState, scores: list[CandidateScore]
     return [lead] + [s for s in scores if s is not lead]
 
 
-def _past_sensor_lags(state: DiscoveryState, scorers: dict[str, StageScorer],
-                      scores: list[CandidateScore], rec: dict
-                      ) -> tuple[list[CandidateScore], list[CandidateScore]]:
-    """The round's candidates less every stage whose winner a sensor's own lag matches
-    (``sensor_lag.matching``; recorded in ``rec``), and the lags refitted in the stage that
-    leads then (rivals for its ranking bootstrap). A winner short of the margins is left
-    to them."""
+def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
+                 scores: list[CandidateScore], rec: dict
+                 ) -> tuple[list[CandidateScore], list[CandidateScore]]:
+    """The round's candidates less every stage whose winner a reality outside the
+    catalogue matches (``rivals.matching``: a sensor's lag, a drift over the campaign;
+    recorded in ``rec``), and the rivals refitted in the stage that leads then (for its
+    ranking bootstrap). A winner short of the margins is left to them."""
     settings = state.settings
     while scores:
         best = scores[0]
         if acceptance.margin_shortfall(best, settings.min_relative_gain,
-                                       _aic_drop(state, best.k_effect)) is not None:
+                                       aic_drop(state, best.k_effect)) is not None:
             return scores, []
-        lags = sensor_lag.rivals(scorers[best.stage], state.model, best.n_eff)
-        if lags:
-            rec.setdefault("sensor_lag", []).extend(score_record(s) for s in lags)
-        lag = sensor_lag.matching(best, lags)
-        if lag is None:
-            return scores, lags
-        gone = sensor_lag.declined(best, lag)
+        found = rivals.rivals(scorers[best.stage], state.model, best.n_eff)
+        if found:
+            rec.setdefault("rivals", []).extend(score_record(s) for s in found)
+        rival = rivals.matching(best, found)
+        if rival is None:
+            return scores, found
+        gone = rivals.declined(best, rival)
         log.info("round %d: %s", rec["round"], gone["reason"])
-        rec.setdefault("sensor_lag_declined", []).append(gone)
+        rec.setdefault("rival_declined", []).append(gone)
         scores = [s for s in scores if s.stage != best.stage]
     return scores, []
 
 
-def _aic_drop(state: DiscoveryState, k: int) -> float:
+def aic_drop(state: DiscoveryState, k: int) -> float:
     """The significance margin of an effect with ``k`` parameters (``acceptance``): every
     catalogue pair counts as a candidate, the ones a later round no longer rescores too,
     as the data chose which those are."""
@@ -279,7 +279,7 @@ def _screen(state: DiscoveryState, rnd: int, shortlist: set[str] | None, bar,
         bar.reset(total=len(shortlist) if shortlist is not None else len(state.model.effects))
     return structure_test(state.ids, state.p, state.scales, exclude=set(state.accepted),
                           refine=settings.refine, only=shortlist, progress=tick,
-                          scorers=scorers, scorer_for=partial(_stage_scorer, state))
+                          scorers=scorers, scorer_for=partial(stage_scorer, state))
 
 
 def _extend(state: DiscoveryState, scorer: StageScorer, best: CandidateScore,

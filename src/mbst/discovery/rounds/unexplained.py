@@ -36,6 +36,7 @@ import numpy as np
 from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
 from mbst.discovery.data import TestResidual, residual_data
+from mbst.discovery.rounds.rival_findings import rival_findings
 from mbst.discovery.rounds.stickslip import highpass
 from mbst.discovery.signature import (
     SURROGATES,
@@ -126,9 +127,15 @@ def unexplained_round(state: DiscoveryState) -> None:
 
 
 def _describe(state: DiscoveryState) -> None:
-    """Each channel's signature; one ``unexplained`` finding for the structured ones."""
+    """A reality a round declined its winner for (``rival_findings``), then each channel's
+    signature of what is left after it; one ``unexplained`` finding for the structured
+    ones."""
     state.measure_floors("unexplained round")  # at the extended model
-    tests = [residual_data(pt, state.p) for pt in state.ids]
+    found_rivals, physics = rival_findings(state)
+    state.findings += found_rivals
+    state.rival_physics = physics
+    p = state.p if physics is None else physics
+    tests = [residual_data(pt, p) for pt in state.ids]
     state.extended_residuals = tests
     places = campaign_places(state)
     channels = list(dict.fromkeys(ch for t in tests for ch in t.channels))

@@ -30,9 +30,11 @@ from mbst.systems.eps.channels import OUTPUT_CHANNELS, SYSTEM_NAME
 from mbst.systems.eps.library import EpsCandidateLibrary
 from mbst.systems.eps.params import (
     EFFECT_CATALOGUE,
+    FRICTION_DRIFT,
     PARAM_INDEX,
     PARAM_SPECS,
     TORQUE_SENSOR_LAG,
+    coulomb_levels,
     friction_base,
 )
 
@@ -663,6 +665,8 @@ EPS_MODEL = ModelDefinition(
     ties=EPS_TIES,
     # eps-model.md: "a torque sensor's own filter lags by a few ms"
     sensor_lags={"steering_torque_nm": TORQUE_SENSOR_LAG},
+    # friction that changes as the rig warms up over the campaign
+    campaign_drift=(FRICTION_DRIFT, coulomb_levels()),
 )
 
 # the family's definition, as the registry looks it up (core.family.SystemFamily.model)

@@ -112,6 +112,7 @@ def _friction_block(elem: str) -> list[ParamSpec]:
 
 
 TORQUE_SENSOR_LAG = "torque_sensor.lag_s"
+FRICTION_DRIFT = "friction.campaign_drift"
 
 
 def _build_specs() -> list[ParamSpec]:
@@ -180,8 +181,13 @@ def _build_specs() -> list[ParamSpec]:
         # not a catalogue effect: the torque sensor's own filter, a first-order lag (eps-model.md:
         # "a torque sensor's own filter lags by a few ms"). Held at 0 by identification; the
         # structure rounds refit it as a rival of the measurement, never a name
-        # (``discovery/sensor_lag.py``)
+        # (``discovery/rivals.py``)
         ParamSpec(TORQUE_SENSOR_LAG, "s", 0.0, 0.0, 0.02, "fixed", "torsion_bar"),
+        # not a catalogue effect either: Coulomb levels that change over the campaign's
+        # running order (grease warming up, wear), each × (1 + drift · place) with the
+        # place −½ (first test) … ½ (last). Held at 0; a rival of every structure-test
+        # winner, never a name (``ModelDefinition.campaign_drift``)
+        ParamSpec(FRICTION_DRIFT, "-", 0.0, -0.8, 0.8, "fixed", "rack"),
     ]
     return s
 
@@ -195,6 +201,11 @@ N_PARAMS = len(PARAM_SPECS)
 def friction_base(elem: str) -> int:
     """Index of the first parameter of a friction element's block."""
     return PARAM_INDEX[f"{elem}.coulomb_{_FRICTION_TYPICAL[elem][0]}"]
+
+
+def coulomb_levels() -> tuple[str, ...]:
+    """The Coulomb level of every friction element (what a warming rig's drift scales)."""
+    return tuple(PARAM_NAMES[friction_base(e)] for e in FRICTION_ELEMENTS)
 
 
 def friction_param(elem: str, field: str) -> str:
