@@ -109,9 +109,10 @@ class DiscoveryResult:
                          "to the noise floor")
         for f in self.findings:
             if f.effect == "unexplained":
-                lines.append(f"  unexplained structure ({f.signature['kind']} in "
-                             f"{f.signature['quantity']}), confidence {f.confidence:.2f}: "
-                             "see discovery.md")
+                what = (f.signature["reading"] if f.signature.get("refitted") == "physics"
+                        else f"{f.signature['kind']} in {f.signature['quantity']}")
+                lines.append(f"  outside the catalogue ({what}), confidence "
+                             f"{f.confidence:.2f}: see discovery.md")
                 continue
             pars = ", ".join(f"{k}={v:.4g}" for k, v in f.parameters.items())
             where = " or ".join([f.component, *f.indistinguishable_from])

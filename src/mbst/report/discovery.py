@@ -147,7 +147,7 @@ def fallback_summary(result: DiscoveryResult) -> str:
 
 def _where(f) -> str:
     """A finding's component, with the parts of its body it could sit in as well."""
-    return " or ".join([f.component, *f.indistinguishable_from])
+    return " or ".join([f.component, *f.indistinguishable_from]) or "–"
 
 
 def failure_lines(failures: list[str]) -> list[str]:
@@ -166,7 +166,9 @@ def markdown_summary(result: DiscoveryResult) -> str:
         for i, f in enumerate(result.findings, 1):
             pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
             if f.effect == "unexplained" and f.signature:
-                pars = f"{f.signature['kind']} in {f.signature['quantity']}"
+                # a refitted reality says its size; a signature, what it follows
+                pars = (f.signature["reading"] if f.signature.get("refitted") == "physics"
+                        else f"{f.signature['kind']} in {f.signature['quantity']}")
             alt = "".join(f" (or {a['effect']} in {a['component']}?)" for a in f.alternatives)
             lines.append(f"| {i} | {f.effect}{alt} | {_where(f)} | {pars} | "
                          f"{f.confidence:.2f} |")

@@ -302,6 +302,61 @@ def unexplained_signature(result, path: Path) -> bool:
     return True
 
 
+def outside_reality(result, path: Path) -> bool:
+    """A reality outside the catalogue refitted as physics (a sensor's lag, a drift of the
+    friction levels over the campaign: ``rounds/rival_findings.py``): per test of its
+    stage, in the running order, what the base model leaves and what the model with it
+    leaves, and the worst test's residual over time. Returns whether drawn."""
+    found = [f for f in result.findings if f.effect == "unexplained" and f.signature
+             and f.signature.get("refitted") == "physics"][:2]
+    if not found or not result.extended_residuals:
+        return False
+    with_it = {t.id: t for t in result.extended_residuals}
+    fig, axes = plt.subplots(len(found), 2, figsize=(11, 3.4 * len(found)), squeeze=False)
+    for row, f in zip(axes, found, strict=True):
+        tests = [t for t in result.residual_tests if t.scenario == f.stage and t.id in with_it]
+        ch = _lead_channel(f, tests, with_it)
+        s = SCALE.get(ch, 1.0)
+        drift = f.signature["kind"] == "drift"
+        # a drift shows as the friction level each test wants (the residual along the
+        # direction of motion); a lag as what is left at all
+        level = (lambda t: float(np.mean(t.residual(ch) * np.sign(t.omega_rad_per_s)))) \
+            if drift else (lambda t: float(np.sqrt(np.mean(t.residual(ch) ** 2))))
+        x = [result.places.get(t.id, 0.0) for t in tests]
+        row[0].plot(x, [s * level(t) for t in tests], "o-", color="black", label="base model")
+        row[0].plot(x, [s * level(with_it[t.id]) for t in tests], "o-", color="tab:orange",
+                    label=f"with {f.signature['kind']}")
+        row[0].axhline(0.0, color="grey", lw=0.5)
+        row[0].legend(fontsize=7)
+        what = "mean residual × sign(rate)" if drift else "residual rms"
+        plots._style(row[0], f.signature["reading"], f"{what} {label_of(ch)}",
+                     "test's place in the running order (first −½, last ½)")
+        worst = max(tests, key=lambda t: float(np.std(t.residual(ch))))
+        row[1].plot(worst.time_s, s * worst.residual(ch), color="black", lw=0.8,
+                    label="measured − base")
+        row[1].plot(worst.time_s, s * with_it[worst.id].residual(ch), color="tab:orange",
+                    lw=0.8, label=f"measured − model with {f.signature['kind']}")
+        row[1].legend(fontsize=7, loc="upper right")
+        plots._style(row[1], f"{worst.id} ({f.stage})", label_of(ch))
+    fig.tight_layout()
+    plots.save_figure(fig, path)
+    return True
+
+
+def _lead_channel(f, tests: list, with_it: dict) -> str:
+    """The channel the reality acts on: the lagging sensor's, else the one whose residual
+    it shrinks the most."""
+    if f.signature["kind"] == "lag":
+        return f.signature["quantity"]
+
+    def shrink(ch: str) -> float:
+        before = sum(float(np.sum(t.residual(ch) ** 2)) for t in tests if ch in t.measured)
+        after = sum(float(np.sum(with_it[t.id].residual(ch) ** 2)) for t in tests
+                    if ch in t.measured)
+        return before / after if after > 0 else 0.0
+    return max(dict.fromkeys(ch for t in tests for ch in t.measured), key=shrink)
+
+
 def write_all(result, figdir: Path, failures: list[str] | None = None) -> None:
     """Every discovery figure, each on its own: one that fails is listed in ``failures``."""
     prepared = result.base.prepared
@@ -315,6 +370,7 @@ def write_all(result, figdir: Path, failures: list[str] | None = None) -> None:
         "resolution": lambda p: resolution_bars(result, p),
         "stick_slip": lambda p: stick_slip(result, p),
         "unexplained": lambda p: unexplained_signature(result, p),
+        "outside_reality": lambda p: outside_reality(result, p),
         "comparison": lambda p: comparison_bars(result, p),
         "time_histories": lambda p: plots.time_histories(shown, models, p),
         "hysteresis": lambda p: plots.hysteresis_loops(shown, physics, p),

@@ -105,7 +105,9 @@ def _finding(state: DiscoveryState, score: CandidateScore, boot: dict, gone: dic
         stage=score.stage, relative_gain=score.relative_gain, aic_delta=score.aic_delta,
         cv={"held_out": "block bootstrap", "wins_share": boot.get("wins_share")},
         signature={"kind": kind, "quantity": quantity, **size, "stages": [score.stage],
-                   "reading": said, "refitted": "physics", "channels": []},
+                   "reading": said, "refitted": "physics",
+                   # its share of the stage's residual cost (a physics refit: no terms)
+                   "share_of_residual": score.relative_gain, "channels": []},
     )
 
 
