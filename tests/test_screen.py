@@ -104,7 +104,7 @@ def test_a_later_round_refits_the_effects_already_accepted_with_its_candidates(t
         base=SimpleNamespace(preid={"upper": {}}), compensating=dict,
         cascade_free={STAGE: EPS_MODEL.stage_free()[STAGE]}, extra_free={STAGE: (ratio,)})
     state.model_free = lambda stage: DiscoveryState.model_free(state, stage)
-    scorer = catalogue._stage_scorer(state, STAGE)
+    scorer = catalogue.stage_scorer(state, STAGE)
     assert ratio in scorer.stage_free
     gap = scorer.score(EPS_MODEL.effects["backlash:worm_gear"], 1000.0, max_nfev=5)
     # measured 2026-11-26: 61.9 % of the stage and the ratio back at 1.27; held at 1.75,
