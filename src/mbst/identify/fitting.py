@@ -27,7 +27,7 @@ from mbst.core.filtering import (
 )
 from mbst.core.model import ModelDefinition
 from mbst.identify.work import WORK_BUDGET_FACTOR, WorkMeter, WorkSpent, simulation_steps
-from mbst.io.campaign import Campaign, CampaignError, TestSpec
+from mbst.io.campaign import Campaign, CampaignError, TestSpec, running_order_places
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +99,7 @@ def prepare_test(campaign: Campaign, spec: TestSpec, tau_s: float,
             "campaign it came from, or pass --tau 0",
             campaign=campaign.name, path=campaign.path / "campaign.yaml")
     pt = prepare_frame(campaign.model(), campaign.frame(spec.id), spec, tau_s, input_window_s)
-    ids = [s.id for s in campaign.tests]
-    pt.place = ids.index(spec.id) / max(len(ids) - 1, 1) - 0.5 if spec.id in ids else 0.0
+    pt.place = running_order_places([s.id for s in campaign.tests]).get(spec.id, 0.0)
     return pt
 
 

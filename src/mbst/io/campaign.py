@@ -258,6 +258,18 @@ class Campaign:
 # --------------------------------------------------------------------------- reading
 
 
+def running_order_places(ids: list[str]) -> dict[str, float]:
+    """Places of tests run in the order ``ids``, −½ (first) … ½ (last); one step more is
+    the place of a test run after them (``places_step``). Where a rig that drifts over
+    the campaign stands (``ModelDefinition.campaign_drift``)."""
+    return {tid: i * places_step(ids) - 0.5 for i, tid in enumerate(ids)}
+
+
+def places_step(ids: list[str]) -> float:
+    """The distance between two neighbours in ``running_order_places``."""
+    return 1.0 / max(len(ids) - 1, 1)
+
+
 def read_campaign(path: str | Path, load_data: bool = True) -> Campaign:
     """Read and validate a campaign.
 

@@ -327,10 +327,11 @@ def outside_reality(result, path: Path) -> bool:
         row[0].plot(x, [s * level(with_it[t.id]) for t in tests], "o-", color="tab:orange",
                     label=f"with {f.signature['kind']}")
         row[0].axhline(0.0, color="grey", lw=0.5)
+        row[0].set_xticks(x, [t.id for t in tests], rotation=15, fontsize=7)
         row[0].legend(fontsize=7)
         what = "mean residual × sign(rate)" if drift else "residual rms"
         plots._style(row[0], f.signature["reading"], f"{what} {label_of(ch)}",
-                     "test's place in the running order (first −½, last ½)")
+                     "its tests, in the running order")
         worst = max(tests, key=lambda t: float(np.std(t.residual(ch))))
         row[1].plot(worst.time_s, s * worst.residual(ch), color="black", lw=0.8,
                     label="measured − base")

@@ -45,6 +45,7 @@ from mbst.discovery.signature import (
     feature_names,
 )
 from mbst.discovery.state import DiscoveryState, Finding
+from mbst.io.campaign import running_order_places
 
 log = logging.getLogger(__name__)
 
@@ -95,17 +96,6 @@ def driving_input(model: ModelDefinition) -> str:
 def campaign_places(state: DiscoveryState) -> dict[str, float]:
     """Each test's place in the campaign's running order, −½ (first) … ½ (last)."""
     return running_order_places([s.id for s in state.campaign.tests])
-
-
-def running_order_places(ids: list[str]) -> dict[str, float]:
-    """Places of tests run in the order ``ids``, −½ (first) … ½ (last); one step more is
-    the place of a test run after them (``places_step``)."""
-    return {tid: i * places_step(ids) - 0.5 for i, tid in enumerate(ids)}
-
-
-def places_step(ids: list[str]) -> float:
-    """The distance between two neighbours in ``running_order_places``."""
-    return 1.0 / max(len(ids) - 1, 1)
 
 
 def _noise_rms(state: DiscoveryState, channel: str) -> float:

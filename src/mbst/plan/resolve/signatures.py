@@ -32,10 +32,9 @@ from scipy.stats import norm
 from mbst.core.family import get_system
 from mbst.discovery.acceptance import SEPARATED_SHARE
 from mbst.discovery.data import TestResidual, residual_data
-from mbst.discovery.rounds.unexplained import places_step, running_order_places
 from mbst.discovery.signature import SAMPLES_PER_TEST, feature_groups
 from mbst.identify.fitting import FitProblem, PreparedTest
-from mbst.io.campaign import Campaign
+from mbst.io.campaign import Campaign, places_step, running_order_places
 from mbst.plan.resolve.questions import Question
 
 # rival readings asked per channel (the ranking's next best within the margin)
