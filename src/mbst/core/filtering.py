@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import lfilter, savgol_coeffs, savgol_filter
+from scipy.signal import butter, lfilter, savgol_coeffs, savgol_filter, sosfiltfilt
 
 # Width of the window that smooths the measured driving input (steering angle) into
 # the model's input and its rate (eps-model.md, "Preprocessing").
@@ -105,3 +105,14 @@ def motion_reversals(rate: np.ndarray, deadband: float = 0.05) -> np.ndarray:
     idx = np.flatnonzero(sign)
     changes = idx[1:][np.diff(sign[idx]) != 0]
     return changes
+
+
+# the fast part of a signal: above the drive (≤ 1 Hz and its first harmonics), below a
+# stick-slip's sawtooth or a ripple at the motor's speed
+FAST_HZ = 3.0
+
+
+def highpass(y: np.ndarray, dt_s: float, cutoff_hz: float = FAST_HZ) -> np.ndarray:
+    """The part of ``y`` above ``cutoff_hz`` (4th-order Butterworth, zero phase)."""
+    sos = butter(4, cutoff_hz, "highpass", fs=1.0 / dt_s, output="sos")
+    return sosfiltfilt(sos, np.asarray(y, float))

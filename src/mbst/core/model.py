@@ -78,6 +78,20 @@ class EffectSpec:
         return f"{self.effect}:{self.component}"
 
 
+@dataclass(frozen=True)
+class Ripple:
+    """A torque ripple periodic in a rotating part's angle: ``sine``·sin(N·θ) +
+    ``cosine``·cos(N·θ), N the ``order`` parameter (periods per revolution), θ the
+    ``angle`` state of ``component``; ``typical`` its refit's starting amplitude."""
+
+    angle: str
+    component: str
+    sine: str
+    cosine: str
+    order: str
+    typical: float
+
+
 # simulate_batch(pt, ps) -> one dict per row of ps: sensor channels (unfiltered, offsets
 # applied) plus internal signals under "internal.*"
 BatchSimulator = Callable[[Any, np.ndarray], list[dict[str, np.ndarray]]]
@@ -205,6 +219,11 @@ class ModelDefinition:
         level × (1 + drift · place). Held at 0 by identification and never a catalogue
         name: the structure rounds refit it as a rival of each winner (the rig warming
         up, ``discovery/rivals.py``); ``None``: the family declares no such drift.
+    ripple
+        A torque ripple locked to a rotating part's angle (a motor's cogging,
+        ``Ripple``), held at 0 by identification and never a catalogue name: the
+        unexplained round refits it at the order the residual's fast part repeats with
+        (``discovery/rounds/ripple.py``); ``None``: the family declares none.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -241,6 +260,7 @@ class ModelDefinition:
     ties: dict[str, tuple[str, float]] = field(default_factory=dict)
     sensor_lags: dict[str, str] = field(default_factory=dict)
     campaign_drift: tuple[str, tuple[str, ...]] | None = None
+    ripple: Ripple | None = None
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 

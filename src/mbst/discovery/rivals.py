@@ -25,11 +25,12 @@ other candidate, so the winner's confidence says how often the data prefer it.
 
 from __future__ import annotations
 
-from mbst.core.model import EffectSpec, ModelDefinition
+from mbst.core.model import EffectSpec, ModelDefinition, Ripple
 from mbst.discovery.structure import CandidateScore, StageScorer
 
 LAG = "sensor_lag"
 DRIFT = "friction_drift"
+RIPPLE = "torque_ripple"
 # where the lag's refit starts (× 0.3, 1, 3: ``structure.start_grid``): a sensor filter's
 # few milliseconds
 TYPICAL_LAG_S = 0.003
@@ -50,6 +51,15 @@ def drift_spec(parameter: str) -> EffectSpec:
                       free=(parameter,), default_size={parameter: TYPICAL_DRIFT})
 
 
+def ripple_spec(ripple: Ripple) -> EffectSpec:
+    """A torque ripple (``ModelDefinition.ripple``) as a candidate: its sine and cosine
+    parts, at the order set in the scorer's base vector."""
+    return EffectSpec(effect=RIPPLE, component=ripple.component,
+                      headline={"sine_nm": ripple.sine, "cosine_nm": ripple.cosine},
+                      free=(ripple.sine, ripple.cosine),
+                      default_size={ripple.sine: ripple.typical, ripple.cosine: ripple.typical})
+
+
 def specs(tests: list, model: ModelDefinition) -> list[EffectSpec]:
     """Each lag the family declares for a channel ``tests`` measure, and its drift where
     the tests stand at two places in the running order or more."""
@@ -63,7 +73,8 @@ def specs(tests: list, model: ModelDefinition) -> list[EffectSpec]:
 def parameters(model: ModelDefinition) -> set[str]:
     """The parameters of every rival the family declares."""
     drift = {model.campaign_drift[0]} if model.campaign_drift is not None else set()
-    return set(model.sensor_lags.values()) | drift
+    ripple = {model.ripple.sine, model.ripple.cosine} if model.ripple is not None else set()
+    return set(model.sensor_lags.values()) | drift | ripple
 
 
 def rivals(scorer: StageScorer, model: ModelDefinition, n_eff: float) -> list[CandidateScore]:

@@ -115,6 +115,8 @@ def start_grid(spec: EffectSpec, model: ModelDefinition) -> list[dict[str, float
         elif name.endswith("backlash.width_rad"):
             # down to production gears (eps-model.md: 0.1–0.6°), up to twice a worn one
             vals = tuple(size * f for f in (0.125, 0.25, 0.5, 1.0, 2.0))
+        elif "cogging" in name:  # a ripple's sine and cosine parts: either sign
+            vals = (-size, size)
         elif name.endswith("stop_angle_rad"):
             vals = tuple(size * f for f in (0.5, 1.0, 2.0, 4.0))
         else:

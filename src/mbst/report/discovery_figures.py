@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -317,31 +318,67 @@ def outside_reality(result, path: Path) -> bool:
         tests = [t for t in result.residual_tests if t.scenario == f.stage and t.id in with_it]
         ch = _lead_channel(f, tests, with_it)
         s = SCALE.get(ch, 1.0)
-        drift = f.signature["kind"] == "drift"
-        # a drift shows as the friction level each test wants (the residual along the
-        # direction of motion); a lag as what is left at all
-        level = (lambda t: float(np.mean(t.residual(ch) * np.sign(t.omega_rad_per_s)))) \
-            if drift else (lambda t: float(np.sqrt(np.mean(t.residual(ch) ** 2))))
-        x = [result.places.get(t.id, 0.0) for t in tests]
-        row[0].plot(x, [s * level(t) for t in tests], "o-", color="black", label="base model")
-        row[0].plot(x, [s * level(with_it[t.id]) for t in tests], "o-", color="tab:orange",
-                    label=f"with {f.signature['kind']}")
-        row[0].axhline(0.0, color="grey", lw=0.5)
-        row[0].set_xticks(x, [t.id for t in tests], rotation=15, fontsize=7)
-        row[0].legend(fontsize=7)
-        what = "mean residual × sign(rate)" if drift else "residual rms"
-        plots._style(row[0], f.signature["reading"], f"{what} {label_of(ch)}",
-                     "its tests, in the running order")
+        what = _WHAT.get(f.signature["kind"], f.signature["kind"])
+        if f.signature["kind"] == "periodic":
+            _folded(row[0], f, ch, tests, with_it, s)
+        else:
+            _per_test(row[0], f, ch, tests, with_it, result.places, s)
         worst = max(tests, key=lambda t: float(np.std(t.residual(ch))))
         row[1].plot(worst.time_s, s * worst.residual(ch), color="black", lw=0.8,
                     label="measured − base")
         row[1].plot(worst.time_s, s * with_it[worst.id].residual(ch), color="tab:orange",
-                    lw=0.8, label=f"measured − model with {f.signature['kind']}")
+                    lw=0.8, label=f"measured − model with the {what}")
         row[1].legend(fontsize=7, loc="upper right")
         plots._style(row[1], f"{worst.id} ({f.stage})", label_of(ch))
     fig.tight_layout()
     plots.save_figure(fig, path)
     return True
+
+
+_WHAT = {"lag": "lag", "drift": "drift", "periodic": "ripple"}
+
+
+def _per_test(ax, f, ch: str, tests: list, with_it: dict, places: dict, s: float) -> None:
+    """Per test in the running order: a drift as the friction level each test wants (the
+    residual along the direction of motion), a lag as what is left at all."""
+    drift = f.signature["kind"] == "drift"
+    level = (lambda t: float(np.mean(t.residual(ch) * np.sign(t.omega_rad_per_s)))) \
+        if drift else (lambda t: float(np.sqrt(np.mean(t.residual(ch) ** 2))))
+    x = [places.get(t.id, 0.0) for t in tests]
+    ax.plot(x, [s * level(t) for t in tests], "o-", color="black", label="base model")
+    ax.plot(x, [s * level(with_it[t.id]) for t in tests], "o-", color="tab:orange",
+            label=f"with the {_WHAT.get(f.signature['kind'])}")
+    ax.axhline(0.0, color="grey", lw=0.5)
+    ax.set_xticks(x, [t.id for t in tests], rotation=15, fontsize=7)
+    ax.legend(fontsize=7)
+    what = "mean residual × sign(rate)" if drift else "residual rms"
+    plots._style(ax, textwrap.fill(f.signature["reading"], 70), f"{what} {label_of(ch)}",
+                 "its tests, in the running order")
+
+
+def _folded(ax, f, ch: str, tests: list, with_it: dict, s: float, bins: int = 36) -> None:
+    """A ripple: the fast residual (above the drive's band) averaged over one period of
+    its order of the part's angle, base vs with the ripple."""
+    q, order = f.signature["quantity"], f.signature["periods_per_rev"]
+    centres = (np.arange(bins) + 0.5) * 360.0 / bins
+    for label, pick, color in (("base model", lambda t: t, "black"),
+                               ("with the ripple", lambda t: with_it[t.id], "tab:orange")):
+        phase, fast = [], []
+        for t in tests:
+            if ch in t.measured and q in t.states:
+                phase.append(np.mod(order * t.states[q], 2 * np.pi))
+                fast.append(stickslip.highpass(pick(t).residual(ch), t.dt_s))
+        if not phase:
+            continue
+        k = np.minimum((np.concatenate(phase) / (2 * np.pi) * bins).astype(int), bins - 1)
+        n = np.bincount(k, minlength=bins)
+        mean = np.bincount(k, weights=np.concatenate(fast), minlength=bins) / np.maximum(n, 1)
+        ax.plot(centres, s * mean, "o-", ms=3, color=color, label=label)
+    ax.axhline(0.0, color="grey", lw=0.5)
+    ax.legend(fontsize=7)
+    plots._style(ax, textwrap.fill(f.signature["reading"], 70),
+                 f"fast residual, mean per bin {label_of(ch)}",
+                 f"{order:.0f}·{q} mod 360 [°]")
 
 
 def _lead_channel(f, tests: list, with_it: dict) -> str:

@@ -14,6 +14,8 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 
+import numpy as np
+
 from mbst.discovery import acceptance, extension, lumped, rivals
 from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.rounds.screen import screen
@@ -142,10 +144,13 @@ def _next_candidates(state: DiscoveryState, scores: list[CandidateScore], rec: d
     return NextRound({s.key for s in screened if s.predicted_gain >= needed}, scorers)
 
 
-def stage_scorer(state: DiscoveryState, stage: str) -> StageScorer:
-    """A stage's scorer as the rounds build it, at the model as it stands."""
+def stage_scorer(state: DiscoveryState, stage: str, base: np.ndarray | None = None
+                 ) -> StageScorer:
+    """A stage's scorer as the rounds build it, at the model as it stands (or at
+    ``base``)."""
     settings = state.settings
-    return StageScorer(state.model.stage_tests(stage, state.ids), stage, state.p,
+    return StageScorer(state.model.stage_tests(stage, state.ids), stage,
+                       state.p if base is None else base,
                        state.scales, state.base.preid["upper"], settings.identify.decimate,
                        REFINE_NFEV, reset=state.compensating(),
                        free=state.model_free(stage),

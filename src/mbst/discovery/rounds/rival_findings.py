@@ -47,11 +47,11 @@ def rival_findings(state: DiscoveryState) -> tuple[list[Finding], np.ndarray | N
             continue
         score, boot = refit
         findings.append(_finding(state, score, boot, gone))
-        physics = _with_the_cascade(state, score) if physics is None else physics
+        physics = with_the_cascade(state, score) if physics is None else physics
     return findings, physics
 
 
-def _with_the_cascade(state: DiscoveryState, score: CandidateScore) -> np.ndarray:
+def with_the_cascade(state: DiscoveryState, score: CandidateScore) -> np.ndarray:
     """The rival's stage refit carried through the cascade: every other stage refitted
     with the rival at its size (a sensor's lag acts on every stage that logs the channel;
     the compact plan's 2.8 ms lag, refitted in the blocked column and added to the

@@ -25,7 +25,6 @@ hold (``judge_catalogue_names``): confirmed, partly explained, or in doubt
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -35,9 +34,9 @@ import numpy as np
 
 from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
-from mbst.discovery.data import TestResidual, residual_data
+from mbst.discovery.data import residual_data
+from mbst.discovery.rounds.ripple import LOCK_P_VALUE, fast_part, ripple_findings
 from mbst.discovery.rounds.rival_findings import rival_findings
-from mbst.discovery.rounds.stickslip import highpass
 from mbst.discovery.signature import (
     SURROGATES,
     ChannelSignature,
@@ -51,9 +50,6 @@ log = logging.getLogger(__name__)
 
 # the confidence of a catalogue name that an outside signature explains as well
 DOUBTED_CONFIDENCE = 0.45
-# a fast residual predicted beyond every phase-randomised copy (p = 1/20) repeats with the
-# motion (``_locked_fast_part``)
-LOCK_P_VALUE = 1.0 / (1 + SURROGATES)
 
 
 def equally(sig: ChannelSignature, margin: float = 0.01) -> list[str]:
@@ -122,7 +118,9 @@ def _describe(state: DiscoveryState) -> None:
     ones."""
     state.measure_floors("unexplained round")  # at the extended model
     found_rivals, physics = rival_findings(state)
-    state.findings += found_rivals
+    ripples, with_ripple = ripple_findings(state, state.p if physics is None else physics)
+    state.findings += found_rivals + ripples
+    physics = physics if with_ripple is None else with_ripple
     state.rival_physics = physics
     p = state.p if physics is None else physics
     tests = [residual_data(pt, p) for pt in state.ids]
@@ -357,7 +355,7 @@ def _locked_fast_part(state: DiscoveryState, f: Finding) -> ChannelSignature | N
     20 mN·m motor cogging: order 18 of the motor angle, 8.8 % against 7.3 %), and so does
     a stick-slip that repeats alike in every test (rig 102's rack Stribeck: order 6 of the
     motor angle, 9.5 % against 4.9 %); these read alike, and the name stays in doubt."""
-    tests = [_fast_part(t) for t in _stage_tests(state.residuals, f.stage)]
+    tests = [fast_part(t) for t in _stage_tests(state.residuals, f.stage)]
     places = campaign_places(state)
     for channel in dict.fromkeys(ch for t in tests for ch in t.measured):
         sig = describe_channel(tests, channel, places, 0.0, seed=state.settings.identify.seed,
@@ -365,12 +363,6 @@ def _locked_fast_part(state: DiscoveryState, f: Finding) -> ChannelSignature | N
         if sig is not None and sig.best is not None and sig.p_value <= LOCK_P_VALUE:
             return sig
     return None
-
-
-def _fast_part(t: TestResidual) -> TestResidual:
-    """``t`` with each channel's residual high-passed as the stick-slip round sees it."""
-    return dataclasses.replace(t, measured={
-        ch: t.simulated[ch] + highpass(t.residual(ch), t.dt_s) for ch in t.measured})
 
 
 def _fast_reading(sig: ChannelSignature) -> str:

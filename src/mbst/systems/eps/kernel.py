@@ -97,6 +97,7 @@ P_STOPR = PARAM_INDEX["torsion_bar.stiffness_limit_stop.stiffness_ratio"]
 P_TRF = PARAM_INDEX["tie_rods.coulomb_friction.level"]
 P_TRF_VEPS = PARAM_INDEX["tie_rods.regularisation_velocity_m_per_s"]
 P_COG_A = PARAM_INDEX["motor.cogging_torque_nm"]
+P_COG_B = PARAM_INDEX["motor.cogging_cos_torque_nm"]
 P_VRATIO = PARAM_INDEX["rack_pinion.ratio_variation_per_rad2"]
 P_COG_N = PARAM_INDEX["motor.cogging_periods_per_rev"]
 P_AFAM = PARAM_INDEX["assist.family"]
@@ -275,11 +276,13 @@ def assist_torque(t_tb, om_sw, p):
 
 @njit(**_JIT)
 def cogging_torque(theta_m, p):
-    """The motor's detent torque, periodic in its angle (bench only: not in the catalogue)."""
-    a = p[P_COG_A]
-    if a == 0.0:
+    """The motor's detent torque, periodic in its angle (not in the catalogue: the bench
+    plants it, discovery refits it to describe a ripple it reads)."""
+    a, b = p[P_COG_A], p[P_COG_B]
+    if a == 0.0 and b == 0.0:
         return 0.0
-    return a * math.sin(p[P_COG_N] * theta_m)
+    x = p[P_COG_N] * theta_m
+    return a * math.sin(x) + b * math.cos(x)
 
 
 @njit(**_JIT)

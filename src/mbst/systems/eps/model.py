@@ -19,7 +19,7 @@ from mbst.core.filtering import (
     signal_resolution,
     white_noise_std,
 )
-from mbst.core.model import ModelDefinition
+from mbst.core.model import ModelDefinition, Ripple
 from mbst.core.threads import run_longest_first
 from mbst.io.campaign import CampaignError
 from mbst.systems.eps import assist as eps_assist
@@ -29,6 +29,9 @@ from mbst.systems.eps import simulate as eps
 from mbst.systems.eps.channels import OUTPUT_CHANNELS, SYSTEM_NAME
 from mbst.systems.eps.library import EpsCandidateLibrary
 from mbst.systems.eps.params import (
+    COGGING_COS,
+    COGGING_ORDER,
+    COGGING_SIN,
     EFFECT_CATALOGUE,
     FRICTION_DRIFT,
     PARAM_INDEX,
@@ -667,6 +670,9 @@ EPS_MODEL = ModelDefinition(
     sensor_lags={"steering_torque_nm": TORQUE_SENSOR_LAG},
     # friction that changes as the rig warms up over the campaign
     campaign_drift=(FRICTION_DRIFT, coulomb_levels()),
+    # a motor's cogging: a few mN·m at the motor, tens to a hundred mN·m at the column
+    ripple=Ripple(angle="motor_angle_rad", component="motor", sine=COGGING_SIN,
+                  cosine=COGGING_COS, order=COGGING_ORDER, typical=0.005),
 )
 
 # the family's definition, as the registry looks it up (core.family.SystemFamily.model)

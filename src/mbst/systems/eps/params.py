@@ -113,6 +113,9 @@ def _friction_block(elem: str) -> list[ParamSpec]:
 
 TORQUE_SENSOR_LAG = "torque_sensor.lag_s"
 FRICTION_DRIFT = "friction.campaign_drift"
+COGGING_SIN = "motor.cogging_torque_nm"
+COGGING_COS = "motor.cogging_cos_torque_nm"
+COGGING_ORDER = "motor.cogging_periods_per_rev"
 
 
 def _build_specs() -> list[ParamSpec]:
@@ -157,10 +160,13 @@ def _build_specs() -> list[ParamSpec]:
         ParamSpec("tie_rods.coulomb_friction.level", "N", 0.0, 0.0, 2000.0, "effect", "tie_rods"),
         ParamSpec("tie_rods.regularisation_velocity_m_per_s", "m/s", 2e-5, 2e-5, 2e-5, "fixed",
                   "tie_rods"),
-        # not a catalogue effect: the bench's motor cogging (a torque ripple periodic in the
-        # motor angle), held at 0 by identification; discovery can only describe it
-        ParamSpec("motor.cogging_torque_nm", "N·m", 0.0, 0.0, 0.0, "fixed", "motor"),
-        ParamSpec("motor.cogging_periods_per_rev", "-", 18.0, 18.0, 18.0, "fixed", "motor"),
+        # not a catalogue effect: a motor cogging, a torque ripple periodic in the motor
+        # angle, a·sin(N·θ) + b·cos(N·θ). Held at 0 by identification; the bench plants it
+        # (``--cogging-nm``: a), and discovery refits it at the order it reads in the
+        # residual to describe what is left, never as a name (``ModelDefinition.ripple``)
+        ParamSpec(COGGING_SIN, "N·m", 0.0, -0.5, 0.5, "fixed", "motor"),
+        ParamSpec(COGGING_COS, "N·m", 0.0, -0.5, 0.5, "fixed", "motor"),
+        ParamSpec(COGGING_ORDER, "-", 18.0, 1.0, 64.0, "fixed", "motor"),
         # not a catalogue effect either: a variable-ratio rack (quicker off centre), the
         # rack's travel per pinion radian r·(1 + a·θ²) with θ the pinion angle in rad
         ParamSpec("rack_pinion.ratio_variation_per_rad2", "1/rad²", 0.0, 0.0, 0.0, "fixed",
