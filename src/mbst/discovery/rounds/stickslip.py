@@ -461,7 +461,8 @@ def _declined_for_a_ripple(state: DiscoveryState, finding: Finding, rec: dict) -
                    "noise cannot: the stage shakes with a rotating part's angle, not a "
                    "catalogue effect (the unexplained round reads it)")}]
     rec["accepted"] = None
-    rec["reason"] = rec["rival_declined"][0]["reason"]
+    rec["reason"] = ("its winner is matched by a ripple locked to a rotating part "
+                     "(``rival_declined``)")
     return True
 
 
