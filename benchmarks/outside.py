@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from pathlib import Path
 
 import pandas as pd
 
@@ -40,6 +41,9 @@ CASES = {
     # engineer after an eccentricity, not a cogging
     "cogging 4 mN·m": (dict(cogging_nm=0.004), ("periodic", "motor_angle_rad", COGGING_ORDER)),
     "cogging 20 mN·m": (dict(cogging_nm=0.02), ("periodic", "motor_angle_rad", COGGING_ORDER)),
+    # another order than the model's default: the order is read, not assumed
+    "cogging 10 mN·m, order 12": (dict(cogging_nm=0.01, cogging_order=12),
+                                  ("periodic", "motor_angle_rad", 12.0)),
     "rack ratio 0.2/rad²": (dict(rack_ratio_variation=0.2),
                             ("polynomial", "pinion_angle_rad|steering_angle_rad|rack_position_m|motor_angle_rad")),
     "clean": ({}, None),
@@ -113,6 +117,7 @@ def main() -> None:
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         print(df.to_string(index=False))
     print("\n".join(summary(df)))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(args.out, index=False)
 
 

@@ -31,7 +31,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 # mbst bench's realism flags → BenchRealism fields
 _REALISM_FLAGS = ("draw_rig", "known_error", "known_sigma", "draw_sizes", "noise_ar1",
                   "quantise", "torque_lag_s", "offset_drift", "friction_drift", "cogging_nm",
-                  "rack_ratio_variation", "oversample", "smoothing", "plan_jitter")
+                  "cogging_order", "rack_ratio_variation", "oversample", "smoothing", "plan_jitter")
 
 
 def _bench_realism(args: argparse.Namespace):
@@ -252,8 +252,10 @@ def _add_realism_flags(p: argparse.ArgumentParser) -> None:
                    help="Coulomb levels fall by this fraction as the rig warms up (not a "
                    "catalogue effect)")
     g.add_argument("--cogging-nm", type=float, metavar="NM",
-                   help="motor cogging: a torque ripple of this amplitude, 18 periods per "
-                   "motor revolution (not a catalogue effect)")
+                   help="motor cogging: a torque ripple of this amplitude (not a catalogue "
+                   "effect)")
+    g.add_argument("--cogging-order", type=int, metavar="N",
+                   help="the cogging's periods per motor revolution (default 18)")
     g.add_argument("--rack-ratio-variation", type=float, metavar="A",
                    help="a variable-ratio rack: travel per pinion radian r·(1 + A·θ²), θ the "
                    "pinion angle in rad (not a catalogue effect)")

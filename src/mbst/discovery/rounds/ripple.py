@@ -65,19 +65,23 @@ class Lock:
 
 
 def strongest_lock(tests: list[TestResidual], angle: str, places: dict[str, float],
-                   seed: int = 0, input_name: str = "input") -> Lock | None:
+                   seed: int = 0, input_name: str = "input", beyond_chance: bool = True
+                   ) -> Lock | None:
     """The stage and channel whose fast residual repeats with ``angle`` furthest above
-    chance (``LOCK_P_VALUE``); ``None`` where none does."""
+    chance (``LOCK_P_VALUE``); ``None`` where none does. ``beyond_chance`` False: the
+    best reading of the fast residual is enough where it is periodic in ``angle`` (a
+    candidate's order for a refit that decides by itself)."""
     best: tuple[float, Lock] | None = None
     for stage in dict.fromkeys(t.scenario for t in tests):
         fast = [fast_part(t) for t in tests if t.scenario == stage]
         for ch in dict.fromkeys(c for t in fast for c in t.measured):
             sig = describe_channel(fast, ch, places, 0.0, seed=seed, input_name=input_name)
             if (sig is None or sig.best is None or sig.best.group != f"periodic:{angle}"
-                    or sig.p_value > LOCK_P_VALUE):
+                    or sig.best.cv_share <= 0
+                    or (beyond_chance and sig.p_value > LOCK_P_VALUE)):
                 continue
             lead = sig.best.cv_share - sig.chance_share
-            if lead > 0 and (best is None or lead > best[0]):
+            if (lead > 0 or not beyond_chance) and (best is None or lead > best[0]):
                 best = (lead, Lock(stage, ch, sig))
     return None if best is None else best[1]
 
@@ -87,7 +91,12 @@ def ripple_findings(state: DiscoveryState, p: np.ndarray
     """The family's ripple refitted at the order the fast residual at ``p`` repeats with,
     if it clears the margins: its finding and the parameters with it, else ``[]``,
     ``None``."""
-    found = refit_at_lock(state, p)
+    # a stick-slip the ripple matched (``stickslip._declined_for_a_ripple``): the same
+    # search, in that stage, as the stick-slip round ran it
+    matched = next((g["stage"] for rec in state.rounds for g in rec.get("rival_declined", [])
+                    if g["rival"] == rivals.ripple_spec(state.model.ripple).key), None) \
+        if state.model.ripple is not None else None
+    found = refit_at_lock(state, p, matched, beyond_chance=matched is None)
     if found is None:
         return [], None
     lock, scorer, score = found
@@ -97,11 +106,12 @@ def ripple_findings(state: DiscoveryState, p: np.ndarray
     return [_finding(state, score, boot, lock)], with_the_cascade(state, score)
 
 
-def refit_at_lock(state: DiscoveryState, p: np.ndarray, stage: str | None = None
+def refit_at_lock(state: DiscoveryState, p: np.ndarray, stage: str | None = None,
+                  beyond_chance: bool = True
                   ) -> tuple[Lock, StageScorer, CandidateScore] | None:
     """The ripple refitted at ``p`` in the stage (or ``stage``) whose fast residual repeats
-    with its part's angle, at that order; ``None`` where none repeats, or where the refit
-    does not clear the margins a catalogue effect must clear."""
+    with its part's angle (``strongest_lock``), at that order; ``None`` where none repeats,
+    or where the refit does not clear the margins a catalogue effect must clear."""
     ripple = state.model.ripple
     if ripple is None:
         return None
@@ -109,7 +119,7 @@ def refit_at_lock(state: DiscoveryState, p: np.ndarray, stage: str | None = None
     lock = strongest_lock(tests, ripple.angle,
                           running_order_places([s.id for s in state.campaign.tests]),
                           state.settings.identify.seed,
-                          get_system(state.model.name).input_channel)
+                          get_system(state.model.name).input_channel, beyond_chance)
     if lock is None:
         return None
     base = state.model.vector_from({ripple.order: lock.order}, base=p)
@@ -137,8 +147,10 @@ def _finding(state: DiscoveryState, score: CandidateScore, boot: dict, lock: Loc
     fast = lock.signature
     said = (f"a torque ripple of {1e3 * amplitude:.1f} mN·m at the {ripple.component}, "
             f"{lock.order} periods per revolution of {ripple.angle} (a cogging)")
+    how = ("repeats with" if fast.best.cv_share > fast.chance_share
+           else "is read best, though not beyond chance alone, as periodic in")
     text = (f"OUTSIDE THE CATALOGUE: {said}. The fast part of the {lock.stage} residual in "
-            f"{lock.channel} repeats with {ripple.angle} at order {lock.order} "
+            f"{lock.channel} {how} {ripple.angle} at order {lock.order} "
             f"({100 * fast.best.cv_share:.1f} % held out against "
             f"{100 * fast.chance_share:.1f} % by chance); refitted at that order with the "
             f"stage's parameters, the ripple removes {100 * score.relative_gain:.1f} % of "

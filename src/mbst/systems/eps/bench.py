@@ -360,6 +360,7 @@ class BenchRecipe:
         rig = draw_rig(self.seed, self.offsets) if r.draw_rig else {**self.rig, **self.offsets}
         if r.cogging_nm:
             rig["motor.cogging_torque_nm"] = r.cogging_nm
+            rig["motor.cogging_periods_per_rev"] = float(r.cogging_order)
         if r.rack_ratio_variation:
             rig["rack_pinion.ratio_variation_per_rad2"] = r.rack_ratio_variation
         return sharper_friction(rig, r.smoothing) if r.smoothing != 1.0 else rig

@@ -101,7 +101,7 @@ class BenchRealism:
     ``noise_ar1``, ``quantise``, ``torque_lag_s``, ``offset_drift``: sensor
     realities. ``friction_drift``: Coulomb levels that fall by this fraction as the
     rig warms up over the campaign, ``cogging_nm``, the motor's detent torque
-    (``motor.cogging_torque_nm``), and ``rack_ratio_variation``, a variable-ratio
+    (``motor.cogging_torque_nm``) at ``cogging_order`` periods per revolution, and ``rack_ratio_variation``, a variable-ratio
     rack quicker off centre (``rack_pinion.ratio_variation_per_rad2``), are not
     catalogue effects: discovery can only describe them (an ``unexplained`` finding). ``oversample`` and
     ``smoothing``: the bench integrates on a finer grid than it samples and with
@@ -119,6 +119,7 @@ class BenchRealism:
     offset_drift: float = 0.0
     friction_drift: float = 0.0
     cogging_nm: float = 0.0
+    cogging_order: int = 18
     rack_ratio_variation: float = 0.0
     oversample: int = 1
     smoothing: float = 1.0
