@@ -573,3 +573,54 @@ def test_a_stick_slip_name_on_the_edge_of_its_range_says_its_size_is_a_bound(mon
     assert "stribeck_velocity on the edge of its search range" in edge
     assert "a bound, not a measurement" in edge
     assert "on the edge of its search range" not in record([]).evidence
+
+
+def test_a_stick_slip_a_refitted_ripple_matches_is_not_named(monkeypatch):
+    """A 20 mN·m motor cogging shook the drive as a stick-slip: rack Stribeck removed 91 % of
+    the envelope misfit, the ripple refitted at the fast residual's order 90 % and 68 % of the
+    output error. Within the round's tie of the envelope the output error decides: no name,
+    the ripple on the record. A ripple that leaves more of the envelope, none at all, or a
+    check that fails (reported) leave the name."""
+    import mbst.discovery.rounds.stickslip as ss
+
+    lock = SimpleNamespace(order=18, signature=SimpleNamespace(
+        best=SimpleNamespace(group="periodic:motor_angle_rad")))
+    score = SimpleNamespace(params=np.ones(1), key="torque_ripple:motor", relative_gain=0.68,
+                            aic_delta=-2107.0, headline={"sine_nm": 0.0155, "cosine_nm": 0.0})
+
+    def envelope(gain):
+        return type("Env", (), {"__init__": lambda self, *a: None,
+                                "tests": [SimpleNamespace(time_s=np.zeros(10))],
+                                "misfits": lambda self, ps: np.array([[100.0],
+                                                                      [100.0 * (1 - gain)]])})
+
+    def run(ripple, gain=0.90):
+        finding = _finding("stribeck_friction", "rack", 0.9)
+        finding.relative_gain = 0.91
+        rec = {"round": 2, "method": "stick_slip", "accepted": "stribeck_friction:rack"}
+        monkeypatch.setattr(ss, "_stick_slip_record", lambda *a, **k: (rec, finding, np.ones(1)))
+        monkeypatch.setattr(ss, "_split_undecided", lambda *a: None)
+        monkeypatch.setattr(ss, "_twins_within_reach", lambda *a: None)
+        monkeypatch.setattr(ss, "refit_at_lock", ripple)
+        monkeypatch.setattr(ss, "StageEnvelope", envelope(gain))
+        state = SimpleNamespace(
+            room_for_more=lambda: True, compensating=lambda: {}, ids=[], p=np.zeros(1),
+            accepted=[], rounds=[], findings=[], failures=[], timings={},
+            settings=SimpleNamespace(identify=SimpleNamespace(seed=0)),
+            refit_cost=lambda: None, model=SimpleNamespace(stage_tests=lambda s, ids: ids))
+        ss.stick_slip_round(state)
+        return state, rec
+
+    state, rec = run(lambda *a, **k: (lock, None, score))
+    assert not state.findings and rec["accepted"] is None
+    gone = rec["rival_declined"][0]
+    assert gone["rival"] == "torque_ripple:motor" and gone["rival_envelope_gain"] == 0.9
+    assert "15.5 mN·m ripple at 18 periods per revolution" in gone["reason"]
+    assert run(lambda *a, **k: (lock, None, score), gain=0.80)[0].findings  # past the tie
+    assert run(lambda *a, **k: None)[0].findings
+
+    def broken(*a, **k):
+        raise FloatingPointError("the ripple's twin diverged")
+
+    state, _ = run(broken)
+    assert state.findings and "ripple check" in state.failures[0]

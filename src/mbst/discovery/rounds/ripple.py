@@ -91,11 +91,13 @@ def ripple_findings(state: DiscoveryState, p: np.ndarray
     """The family's ripple refitted at the order the fast residual at ``p`` repeats with,
     if it clears the margins: its finding and the parameters with it, else ``[]``,
     ``None``."""
+    if state.model.ripple is None:
+        return [], None
     # a stick-slip the ripple matched (``stickslip._declined_for_a_ripple``): the same
     # search, in that stage, as the stick-slip round ran it
+    key = rivals.ripple_spec(state.model.ripple).key
     matched = next((g["stage"] for rec in state.rounds for g in rec.get("rival_declined", [])
-                    if g["rival"] == rivals.ripple_spec(state.model.ripple).key), None) \
-        if state.model.ripple is not None else None
+                    if g["rival"] == key), None)
     found = refit_at_lock(state, p, matched, beyond_chance=matched is None)
     if found is None:
         return [], None

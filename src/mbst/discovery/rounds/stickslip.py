@@ -408,7 +408,7 @@ def stick_slip_round(state: DiscoveryState) -> None:
     rec, finding, p = _stick_slip_record(state.ids, state.p, set(state.accepted), state.rounds,
                                          reset, state.settings.identify.seed)
     state.rounds.append(rec)
-    if finding is not None and _declined_for_a_ripple(state, finding, rec):
+    if finding is not None and _ripple_matches(state, finding, rec):
         finding = None
     if finding is not None:
         _split_undecided(finding, rec, state, reset)
@@ -418,6 +418,17 @@ def stick_slip_round(state: DiscoveryState) -> None:
         state.p = p
         state.refit_cost()
     state.timings["stick_slip_s"] = time.perf_counter() - t0
+
+
+def _ripple_matches(state: DiscoveryState, finding: Finding, rec: dict) -> bool:
+    """``_declined_for_a_ripple``; a failure of that check is reported and never costs the
+    stick-slip's answer."""
+    try:
+        return _declined_for_a_ripple(state, finding, rec)
+    except Exception as exc:  # one check must never sink the round
+        log.warning("stick-slip: the ripple check failed: %s: %s", type(exc).__name__, exc)
+        state.failures.append(f"stick-slip round (ripple check): {type(exc).__name__}: {exc}")
+        return False
 
 
 def _declined_for_a_ripple(state: DiscoveryState, finding: Finding, rec: dict) -> bool:
