@@ -305,9 +305,10 @@ def unexplained_signature(result, path: Path) -> bool:
 
 def outside_reality(result, path: Path) -> bool:
     """A reality outside the catalogue refitted as physics (a sensor's lag, a drift of the
-    friction levels over the campaign: ``rounds/rival_findings.py``): per test of its
-    stage, in the running order, what the base model leaves and what the model with it
-    leaves, and the worst test's residual over time. Returns whether drawn."""
+    friction levels over the campaign: ``rounds/rival_findings.py``; a ripple:
+    ``rounds/ripple.py``): what the base model leaves and what the model with it leaves
+    (per test in the running order, or over one period of a ripple), and the worst test's
+    residual over time. Returns whether drawn."""
     found = [f for f in result.findings if f.effect == "unexplained" and f.signature
              and f.signature.get("refitted") == "physics"][:2]
     if not found or not result.extended_residuals:
