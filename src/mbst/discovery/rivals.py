@@ -21,6 +21,10 @@ identification. In every round the winner's stage refits each like a candidate
 unnamed: the stage's misfit is the sensor's or the campaign's, and the unexplained round
 describes what is left. A rival that comes near is in the ranking bootstrap like any
 other candidate, so the winner's confidence says how often the data prefer it.
+
+A ripple locked to a rotating part (``ModelDefinition.ripple``, a motor's cogging) is
+refitted at the order the residual's fast part reads (``rounds/ripple.py``): the rival of
+a stick-slip name, and described by the unexplained round.
 """
 
 from __future__ import annotations

@@ -113,9 +113,9 @@ def unexplained_round(state: DiscoveryState) -> None:
 
 
 def _describe(state: DiscoveryState) -> None:
-    """A reality a round declined its winner for (``rival_findings``), then each channel's
-    signature of what is left after it; one ``unexplained`` finding for the structured
-    ones."""
+    """A reality a round declined its winner for (``rival_findings``), a ripple locked to a
+    rotating part (``ripple_findings``), then each channel's signature of what is left
+    after them; one ``unexplained`` finding for the structured ones."""
     state.measure_floors("unexplained round")  # at the extended model
     found_rivals, physics = rival_findings(state)
     ripples, with_ripple = ripple_findings(state, state.p if physics is None else physics)
