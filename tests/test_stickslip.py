@@ -582,9 +582,9 @@ def test_a_stick_slip_a_refitted_ripple_matches_is_not_named(monkeypatch):
     the ripple on the record. A ripple that leaves more of the envelope, none at all, or a
     check that fails (reported) leave the name."""
     import mbst.discovery.rounds.stickslip as ss
+    from mbst.systems.eps.model import EPS_MODEL
 
-    lock = SimpleNamespace(order=18, signature=SimpleNamespace(
-        best=SimpleNamespace(group="periodic:motor_angle_rad")))
+    lock = SimpleNamespace(order=18)
     score = SimpleNamespace(params=np.ones(1), key="torque_ripple:motor", relative_gain=0.68,
                             aic_delta=-2107.0, headline={"sine_nm": 0.0155, "cosine_nm": 0.0})
 
@@ -607,7 +607,8 @@ def test_a_stick_slip_a_refitted_ripple_matches_is_not_named(monkeypatch):
             room_for_more=lambda: True, compensating=lambda: {}, ids=[], p=np.zeros(1),
             accepted=[], rounds=[], findings=[], failures=[], timings={},
             settings=SimpleNamespace(identify=SimpleNamespace(seed=0)),
-            refit_cost=lambda: None, model=SimpleNamespace(stage_tests=lambda s, ids: ids))
+            refit_cost=lambda: None, model=SimpleNamespace(
+                stage_tests=lambda s, ids: ids, ripple=EPS_MODEL.ripple))
         ss.stick_slip_round(state)
         return state, rec
 
@@ -615,7 +616,7 @@ def test_a_stick_slip_a_refitted_ripple_matches_is_not_named(monkeypatch):
     assert not state.findings and rec["accepted"] is None
     gone = rec["rival_declined"][0]
     assert gone["rival"] == "torque_ripple:motor" and gone["rival_envelope_gain"] == 0.9
-    assert "15.5 mN·m ripple at 18 periods per revolution" in gone["reason"]
+    assert "ripple of 15.5 mN·m at the motor, 18 periods per revolution" in gone["reason"]
     assert run(lambda *a, **k: (lock, None, score), gain=0.80)[0].findings  # past the tie
     assert run(lambda *a, **k: None)[0].findings
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from mbst.discovery.acceptance import FALSE_ALARM_RATE
 from mbst.discovery.rounds import equation_error, stickslip
+from mbst.discovery.rounds.ripple import fast_part
 from mbst.report import plots
 from mbst.report.plots import MODEL_STYLE, SCALE, label_of, motion_reversals, plt
 
@@ -368,7 +369,7 @@ def _folded(ax, f, ch: str, tests: list, with_it: dict, s: float, bins: int = 36
         for t in tests:
             if ch in t.measured and q in t.states:
                 phase.append(np.mod(order * t.states[q], 2 * np.pi))
-                fast.append(stickslip.highpass(pick(t).residual(ch), t.dt_s))
+                fast.append(fast_part(pick(t)).residual(ch))
         if not phase:
             continue
         k = np.minimum((np.concatenate(phase) / (2 * np.pi) * bins).astype(int), bins - 1)

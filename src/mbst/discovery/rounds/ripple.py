@@ -29,6 +29,7 @@ import numpy as np
 
 from mbst.core.family import get_system
 from mbst.core.filtering import highpass
+from mbst.core.model import Ripple
 from mbst.discovery import acceptance, rivals
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.rounds.catalogue import aic_drop, stage_scorer
@@ -147,13 +148,18 @@ def ripple_size(score: CandidateScore) -> tuple[float, float]:
     return math.hypot(a, b), math.atan2(b, a)
 
 
+def ripple_reading(ripple: Ripple, score: CandidateScore, order: int) -> str:
+    """What a ripple's refit says, in the rig's terms."""
+    return (f"a torque ripple of {1e3 * ripple_size(score)[0]:.1f} mN·m at the "
+            f"{ripple.component}, {order} periods per revolution of {ripple.angle} (a cogging)")
+
+
 def _finding(state: DiscoveryState, score: CandidateScore, boot: dict, lock: Lock
              ) -> Finding:
     ripple = state.model.ripple
     amplitude, phase = ripple_size(score)
     fast = lock.signature
-    said = (f"a torque ripple of {1e3 * amplitude:.1f} mN·m at the {ripple.component}, "
-            f"{lock.order} periods per revolution of {ripple.angle} (a cogging)")
+    said = ripple_reading(ripple, score, lock.order)
     how = ("repeats with" if fast.best.cv_share > fast.chance_share
            else "is read best, though not beyond chance alone, as periodic in")
     text = (f"OUTSIDE THE CATALOGUE: {said}. The fast part of the {lock.stage} residual in "

@@ -40,7 +40,7 @@ from mbst.discovery.acceptance import (
     block_bootstrap_gains,
     one_body_in_stage,
 )
-from mbst.discovery.rounds.ripple import refit_at_lock, ripple_size
+from mbst.discovery.rounds.ripple import refit_at_lock, ripple_reading
 from mbst.discovery.state import DiscoveryState, Finding
 from mbst.discovery.structure import effective_samples
 from mbst.identify.fitting import PreparedTest, twins_each_alone
@@ -454,9 +454,7 @@ def _declined_for_a_ripple(state: DiscoveryState, finding: Finding, rec: dict) -
     w = _weights(env.tests)
     base, with_ripple = env.misfits(np.array([state.p, score.params])) @ w
     envelope_gain = 1.0 - with_ripple / base if base > 0 else 0.0
-    amplitude, _ = ripple_size(score)
-    said = (f"a {1e3 * amplitude:.1f} mN·m ripple at {lock.order} periods per revolution of "
-            f"{lock.signature.best.group.partition(':')[2]}")
+    said = ripple_reading(state.model.ripple, score, lock.order)
     log.info("stick-slip %s (envelope %.1f %%) against %s (envelope %.1f %%, output error "
              "%.1f %%)", finding.component, 100 * finding.relative_gain, said,
              100 * envelope_gain, 100 * score.relative_gain)
