@@ -752,13 +752,14 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     lag_gain = {"blocked_column": 0.272, "free_tie_rods": 0.10}
     refitted = []
 
-    def rivals(scorer, model, n_eff):
+    def rivals(scorer, model, n_eff, stated=None):
         refitted.append(scorer)
         return [cand("sensor_lag:steering_torque_nm", scorer, lag_gain[scorer])]
 
     monkeypatch.setattr(rivals_mod, "rivals", rivals)
     monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.0)
-    state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL)
+    state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL,
+                            campaign=SimpleNamespace(known={}, priors={}))
     scorers = {"blocked_column": "blocked_column", "free_tie_rods": "free_tie_rods"}
     rec = {"round": 1}
     left, lags = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], rec)

@@ -54,6 +54,8 @@ class EffectSpec:
     ``discovery/resolution.py`` scales them to find the smallest size a
     campaign resolves. Those in ``inverse_size`` make the effect stronger as
     they shrink (a Dahl stiffness: the presliding displacement is F_c/σ).
+    ``bounds``: a search range of the spec's own that replaces the family's for these
+    parameters (a rival that moves the campaign's stated values within their tolerance).
     ``other_side_size``: for an effect that acts either way from neutral with another
     shape (a power-law exponent below or above 1), the realistic size on the other
     side; the resolution step states a detection limit for each side. ``level``: the
@@ -72,6 +74,7 @@ class EffectSpec:
     inverse_size: tuple[str, ...] = ()
     other_side_size: dict[str, float] = field(default_factory=dict)
     level: str = ""
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def key(self) -> str:
@@ -224,6 +227,12 @@ class ModelDefinition:
         ``Ripple``), held at 0 by identification and never a catalogue name: the
         unexplained round refits it at the order the residual's fast part repeats with
         (``discovery/rounds/ripple.py``); ``None``: the family declares none.
+    stated_tolerance
+        How far (relative) a known value the campaign states as fixed may be off the rig's
+        (CAD inertias, datasheet ratios: eps-model.md, "a few to 15 % off"): the structure
+        rounds refit the stated values within it as a rival of each winner, and a misfit
+        they explain as well is not named (``discovery/rivals.py``). 0: stated values
+        are exact (a controller's gains), no such rival.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -261,6 +270,7 @@ class ModelDefinition:
     sensor_lags: dict[str, str] = field(default_factory=dict)
     campaign_drift: tuple[str, tuple[str, ...]] | None = None
     ripple: Ripple | None = None
+    stated_tolerance: float = 0.0
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 

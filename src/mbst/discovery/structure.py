@@ -100,7 +100,9 @@ def start_grid(spec: EffectSpec, model: ModelDefinition) -> list[dict[str, float
     for name in spec.free:
         ps = model.spec(name)
         size = spec.default_size[name]
-        if name.endswith("asymmetric_friction.ratio"):
+        if name in spec.bounds:  # a stated value: it starts where the campaign states it
+            vals = (size,)
+        elif name.endswith("asymmetric_friction.ratio"):
             vals = (0.6, 0.8, 1.25, 1.6)
         elif name.endswith("power_law_damping.exponent"):
             vals = (0.4, 0.6, 0.8, 1.4)
@@ -216,11 +218,20 @@ class StageScorer:
         self._base_per_test: np.ndarray | None = None
 
     def problem(self, free: list[str], p0: np.ndarray,
-                tests: list[PreparedTest] | None = None) -> FitProblem:
+                tests: list[PreparedTest] | None = None,
+                bounds: dict[str, tuple[float, float]] | None = None) -> FitProblem:
         tests = tests if tests is not None else self.tests
+        lower, upper = self._bounds(bounds)
         return FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p0,
-                          self.scales, lower=self.model.search_lower, upper=self.upper,
-                          decimate=self.decimate)
+                          self.scales, lower=lower, upper=upper, decimate=self.decimate)
+
+    def _bounds(self, bounds: dict[str, tuple[float, float]] | None
+                ) -> tuple[dict[str, float], dict[str, float]]:
+        """The search range: the family's, with ``bounds`` (a spec's own) in its place."""
+        if not bounds:
+            return self.model.search_lower, self.upper
+        return ({**self.model.search_lower, **{n: lo for n, (lo, _) in bounds.items()}},
+                {**self.upper, **{n: hi for n, (_, hi) in bounds.items()}})
 
     def costs(self, ps: np.ndarray, tests: list[PreparedTest] | None = None
               ) -> np.ndarray:
@@ -298,10 +309,11 @@ class StageScorer:
         else the nearer bound.
         """
         q = np.array(p, float)
+        lower, upper = self._bounds(spec.bounds)
         for n in spec.free:
             ps = self.model.spec(n)
-            lo = self.model.search_lower.get(n, ps.lower)
-            hi = self.upper.get(n, ps.upper)
+            lo = lower.get(n, ps.lower)
+            hi = upper.get(n, ps.upper)
             i = self.model.param_index[n]
             if not lo <= q[i] <= hi:
                 q[i] = hi if n in spec.inverse_size else float(np.clip(q[i], lo, hi))
@@ -491,7 +503,8 @@ class StageScorer:
         # effect that is its neutral end, where the candidate is the base (a prior centred
         # on the base's σ = 0, outside the searched range, pulled a Dahl state off its
         # stiff end and left refits up to 0.04 % above the base on a realistic bench)
-        prob = self.problem(list(spec.free) + self.stage_free, self.neutral_start(p_base, spec))
+        prob = self.problem(list(spec.free) + self.stage_free, self.neutral_start(p_base, spec),
+                            bounds=spec.bounds)
         fr = solve(prob, starts, max_nfev=max_nfev, interior=0.0)
         for _ in range(MAX_REFINE_STEPS - 1 if converge else 0):
             if fr.status != 0 or fr.work_spent:  # stopped on its tolerances or its work

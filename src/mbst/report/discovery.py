@@ -13,6 +13,7 @@ from mbst.core.model import ModelDefinition
 from mbst.discovery.acceptance import FALSE_ALARM_RATE
 from mbst.discovery.pipeline import FORMAT, DiscoverSettings, DiscoveryResult, discover
 from mbst.discovery.residuals import dominant_regions
+from mbst.discovery.rivals import label
 from mbst.discovery.rounds.resolution import Resolution
 from mbst.discovery.rounds.unexplained import signature_record
 from mbst.discovery.signature import ChannelSignature
@@ -169,7 +170,8 @@ def markdown_summary(result: DiscoveryResult) -> str:
                 # a refitted reality says its size; a signature, what it follows
                 pars = (f.signature["reading"] if f.signature.get("refitted") == "physics"
                         else f"{f.signature['kind']} in {f.signature['quantity']}")
-            alt = "".join(f" (or {a['effect']} in {a['component']}?)" for a in f.alternatives)
+            alt = "".join(f" (or {label(a['effect'], a['component'])}?)"
+                          for a in f.alternatives)
             lines.append(f"| {i} | {f.effect}{alt} | {_where(f)} | {pars} | "
                          f"{f.confidence:.2f} |")
         lines += [""] + [f"- **{f.effect} / {_where(f)}**: {f.evidence}"
@@ -180,7 +182,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
                          " (of what these tests can resolve: see below)."
                          if result.resolution else "."))
     for r in result.rounds:
-        for gone in r.get("rival_declined", []):  # a winner a sensor's lag or a drift matched
+        for gone in r.get("rival_declined", []):  # a winner a reality outside the catalogue matched
             lines += ["", f"Round {r['round']}, not named: {gone['reason']}."]
         if r.get("kind") == "backward":
             lines += ["", f"{r['reason'][0].upper()}{r['reason'][1:]}."]

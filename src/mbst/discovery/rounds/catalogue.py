@@ -79,7 +79,8 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     scores, lags = _past_rivals(state, scorers, scores, rec)
     if not scores:
         rec["reason"] = ("every stage's winner that cleared the margins is matched by a "
-                         "sensor's own lag or a drift over the campaign (``rival_declined``)")
+                         "sensor's own lag, a drift over the campaign or the stated known "
+                         "values a bit off (``rival_declined``)")
         return None
     best = scores[0]
     scorer = scorers[best.stage]
@@ -239,8 +240,8 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
                  scores: list[CandidateScore], rec: dict
                  ) -> tuple[list[CandidateScore], list[CandidateScore]]:
     """The round's candidates less every stage whose winner a reality outside the
-    catalogue matches (``rivals.matching``: a sensor's lag, a drift over the campaign;
-    recorded in ``rec``), and the rivals refitted in the stage that leads then (for its
+    catalogue matches (``rivals.matching``: a sensor's lag, a drift over the campaign, the
+    stated known values a bit off; recorded in ``rec``), and the rivals refitted in the stage that leads then (for its
     ranking bootstrap). A winner short of the margins is left to them."""
     settings = state.settings
     while scores:
@@ -248,17 +249,26 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
         if acceptance.margin_shortfall(best, settings.min_relative_gain,
                                        aic_drop(state, best.k_effect)) is not None:
             return scores, []
-        found = rivals.rivals(scorers[best.stage], state.model, best.n_eff)
+        found = rivals.rivals(scorers[best.stage], state.model, best.n_eff, stated(state))
         if found:
             rec.setdefault("rivals", []).extend(score_record(s) for s in found)
         rival = rivals.matching(best, found)
         if rival is None:
             return scores, found
-        gone = rivals.declined(best, rival)
+        gone = rivals.declined(best, rival, stated(state))
         log.info("round %d: %s", rec["round"], gone["reason"])
         rec.setdefault("rival_declined", []).append(gone)
         scores = [s for s in scores if s.stage != best.stage]
     return scores, []
+
+
+def stated(state: DiscoveryState) -> rivals.Stated:
+    """The known values the campaign holds fixed (a prior is fitted, not held), as the
+    family's tolerance allows them to be off (``rivals.py``)."""
+    campaign, model = state.campaign, state.model
+    return rivals.Stated({n: float(v) for n, v in campaign.known.items()
+                          if n in model.param_index and n not in campaign.priors},
+                         model.stated_tolerance)
 
 
 def aic_drop(state: DiscoveryState, k: int) -> float:
@@ -415,7 +425,7 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
                      f"5–95 %)")
         for alt in bootstrap.get("alternatives", []):
             parts.append(
-                f"NOT RULED OUT: {alt['effect']} in {alt['component']} removed "
+                f"NOT RULED OUT: {rivals.label(alt['effect'], alt['component'])} removed "
                 f"{100 * alt['relative_gain']:.1f} %, and {best.effect} in {best.component} "
                 f"is the better of the two in only {100 * alt['winner_better_share']:.0f} % "
                 "of the resamples: both explain much the same residual, and these tests do "

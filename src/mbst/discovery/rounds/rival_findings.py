@@ -35,7 +35,10 @@ def rival_findings(state: DiscoveryState) -> tuple[list[Finding], np.ndarray | N
     first, and the parameters of the strongest one's stage refit (``None``: none)."""
     matched: dict[str, dict] = {}
     for rec in state.rounds:
-        for gone in rec.get("rival_declined", []):
+        # stated values a bit off are the campaign's statement, not the rig's: the round
+        # says which would move, and they are never changed (``rivals.py``)
+        for gone in (g for g in rec.get("rival_declined", [])
+                     if not g["rival"].startswith(rivals.STATED)):
             kept = matched.get(gone["rival"])
             if kept is None or gone["rival_relative_gain"] > kept["rival_relative_gain"]:
                 matched[gone["rival"]] = gone

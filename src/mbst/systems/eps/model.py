@@ -673,6 +673,8 @@ EPS_MODEL = ModelDefinition(
     # a motor's cogging: a few mN·m at the motor, tens to a hundred mN·m at the column
     ripple=Ripple(angle="motor_angle_rad", component="motor", sine=COGGING_SIN,
                   cosine=COGGING_COS, order=COGGING_ORDER, typical=0.005),
+    # eps-model.md: "known values (inertias) that are a few to 15 % off"
+    stated_tolerance=0.15,
 )
 
 # the family's definition, as the registry looks it up (core.family.SystemFamily.model)
