@@ -404,6 +404,26 @@ def test_a_gap_beside_an_asymmetry_is_named_once_the_asymmetry_is_refitted_with_
         truth["backlash:worm_gear"]["width_rad"], rel=0.25)
 
 
+@pytest.mark.slow
+def test_stated_values_a_bit_off_are_not_named_as_a_catalogue_effect(tmp_path):
+    """eps-model.md: known values (inertias) "a few to 15 % off" are among what discovery
+    must not force into a catalogue effect. A clean realistic rig with white noise (seed
+    961: values written up to 10 % off, the motor inertia 4.65e-5 kg·m² for 5.15e-5, and
+    the bench's 3 ms torque lag) had a rack load-dependent friction named at 0.23 (19.8 %
+    of the free tie-rods stage, before 2026-11-27); the stated values refitted within
+    ±15 % remove 24.4 % there. No catalogue name; the round says which values to check."""
+    recipe = BenchRecipe(effects=[], seed=961, plan=compact_plan(),
+                         realism=BenchRealism.realistic(noise_ar1=0.0))
+    camp = read_campaign(run_bench(tmp_path, recipe))
+    result = discover(camp, DiscoverSettings(sparse=False, neural=False, resolution=False))
+    named = [(f.effect, f.component, f.confidence) for f in result.findings
+             if f.effect != "unexplained"]
+    assert named == [], [f.evidence for f in result.findings]
+    declined = [g for r in result.rounds for g in r.get("rival_declined", [])
+                if g["rival"] == "stated_values:campaign"]
+    assert declined and "motor_inertia_kgm2" in declined[0]["reason"], result.rounds
+
+
 def _both_named(tmp_path, effects: list[str], rig: int) -> tuple[dict, dict]:
     """Discovery on a realistic rig with ``effects`` planted: the truth's and the named
     catalogue findings' parameters by key, after checking that exactly those are named."""
