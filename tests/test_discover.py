@@ -752,7 +752,7 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     lag_gain = {"blocked_column": 0.272, "free_tie_rods": 0.10}
     refitted = []
 
-    def rivals(scorer, model, n_eff, stated=None):
+    def rivals(scorer, model, n_eff, stated=None, winner_share=0.0):
         refitted.append(scorer)
         return [cand("sensor_lag:steering_torque_nm", scorer, lag_gain[scorer])]
 

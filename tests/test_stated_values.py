@@ -87,3 +87,19 @@ def test_a_value_the_stage_fits_already_or_a_family_without_a_tolerance_adds_no_
     assert not any(s.effect == rivals.STATED for s in rivals.specs(
         scorer.tests, EPS_MODEL, rivals.Stated({INERTIA: true_inertia}, 0.0)))
     assert np.isfinite(true_inertia)
+
+
+def test_the_stated_values_are_refitted_only_where_one_step_says_they_can_come_near(stage):
+    """One Gauss–Newton step from the statement, within the tolerance, reads what their
+    refit reaches (here to a few points); where that is under half the winner's share the
+    refit is not run."""
+    scorer, true_inertia = stage
+    told = rivals.Stated({INERTIA: 0.88 * true_inertia}, 0.15)
+    spec = rivals.stated_spec(told, EPS_MODEL)
+    step = scorer.linearised_share(spec)
+    refit = _refit(scorer, 0.88 * true_inertia, 0.15)
+    assert step == pytest.approx(refit.relative_gain, abs=0.05)
+    keys = {s.key for s in rivals.rivals(scorer, EPS_MODEL, 500.0, told, 1.9 * step)}
+    assert spec.key in keys
+    keys = {s.key for s in rivals.rivals(scorer, EPS_MODEL, 500.0, told, 2.1 * step)}
+    assert spec.key not in keys and keys  # the lag is refitted as before

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from mbst.core.model import EffectSpec, ModelDefinition
 from mbst.identify.fitting import FitProblem, FitResult, PreparedTest, solve, twins_each_alone
@@ -278,6 +279,22 @@ class StageScorer:
         for n, v in spec.default_size.items():
             q[self.model.param_index[n]] = v
         return q
+
+    def linearised_share(self, spec: EffectSpec) -> float:
+        """The share of the stage's cost a Gauss–Newton step in ``spec``'s parameters and
+        the stage's own, within their search range, removes from the base refit: one
+        difference Jacobian where a refit takes several, to tell which refits can matter."""
+        p = self.base_refit()[0]
+        free = list(spec.free) + self.stage_free
+        prob = self.problem(free, p, bounds=spec.bounds)
+        u = prob.u_of(p)
+        r = prob.residuals(u)[: -len(free)]  # the prior's rows last
+        jac = prob.jacobian(u)[: -len(free)]
+        rr = float(r @ r)
+        if rr <= 0.0:
+            return 0.0
+        step = lsq_linear(jac, -r, bounds=(prob.lb - u, prob.ub - u))
+        return float(max(0.0, 1.0 - 2.0 * step.cost / rr))
 
     def base_refit(self) -> tuple[np.ndarray, float]:
         """The base model refitted on this stage under the candidates' budget.

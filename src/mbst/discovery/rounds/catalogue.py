@@ -249,7 +249,8 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
         if acceptance.margin_shortfall(best, settings.min_relative_gain,
                                        aic_drop(state, best.k_effect)) is not None:
             return scores, []
-        found = rivals.rivals(scorers[best.stage], state.model, best.n_eff, stated(state))
+        found = rivals.rivals(scorers[best.stage], state.model, best.n_eff, stated(state),
+                              best.relative_gain)
         if found:
             rec.setdefault("rivals", []).extend(score_record(s) for s in found)
         rival = rivals.matching(best, found)
