@@ -86,6 +86,10 @@ def test_a_value_the_stage_fits_already_or_a_family_without_a_tolerance_adds_no_
                                                        1.15 * true_inertia))
     assert not any(s.effect == rivals.STATED for s in rivals.specs(
         scorer.tests, EPS_MODEL, rivals.Stated({INERTIA: true_inertia}, 0.0)))
+    # a value with nothing to move in: 0, fixed by the family, outside the family's range
+    odd = rivals.Stated({"motor.regularisation_velocity_rad_per_s": 1e-3, INERTIA: 0.0,
+                         "wheel_mass_kg": 250.0}, 0.15)
+    assert not any(s.effect == rivals.STATED for s in rivals.specs(scorer.tests, EPS_MODEL, odd))
     assert np.isfinite(true_inertia)
 
 

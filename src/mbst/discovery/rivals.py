@@ -105,10 +105,12 @@ def stated_spec(stated: Stated, model: ModelDefinition) -> EffectSpec:
     for n, v in stated.values.items():
         ps = model.spec(n)
         lo, hi = sorted((v * (1.0 - stated.tolerance), v * (1.0 + stated.tolerance)))
-        bounds[n] = (max(lo, ps.lower), min(hi, ps.upper))
-    return EffectSpec(effect=STATED, component="campaign",
-                      headline={n: n for n in stated.values}, free=tuple(stated.values),
-                      default_size=dict(stated.values), bounds=bounds)
+        lo, hi = max(lo, ps.lower), min(hi, ps.upper)
+        if lo <= v <= hi and lo < hi:  # a value of 0, fixed by the family or outside its range
+            bounds[n] = (lo, hi)       # has nothing to move in
+    return EffectSpec(effect=STATED, component="campaign", headline={n: n for n in bounds},
+                      free=tuple(bounds), default_size={n: stated.values[n] for n in bounds},
+                      bounds=bounds)
 
 
 def specs(tests: list, model: ModelDefinition, stated: Stated | None = None
@@ -121,7 +123,9 @@ def specs(tests: list, model: ModelDefinition, stated: Stated | None = None
     if model.campaign_drift is not None and len({pt.place for pt in tests}) > 1:
         out.append(drift_spec(model.campaign_drift[0]))
     if stated is not None and stated.values and stated.tolerance > 0.0:
-        out.append(stated_spec(stated, model))
+        spec = stated_spec(stated, model)
+        if spec.free:
+            out.append(spec)
     return out
 
 
