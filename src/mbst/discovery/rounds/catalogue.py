@@ -241,8 +241,9 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
                  ) -> tuple[list[CandidateScore], list[CandidateScore]]:
     """The round's candidates less every stage whose winner a reality outside the
     catalogue matches (``rivals.matching``: a sensor's lag, a drift over the campaign, the
-    stated known values a bit off; recorded in ``rec``), and the rivals refitted in the stage that leads then (for its
-    ranking bootstrap). A winner short of the margins is left to them."""
+    stated known values a bit off; recorded in ``rec``), and the rivals refitted in the
+    stage that leads then (for its ranking bootstrap). A winner short of the margins is
+    left to them."""
     settings = state.settings
     while scores:
         best = scores[0]
