@@ -209,6 +209,6 @@ def declined(best: CandidateScore, rival: CandidateScore, stated: Stated | None 
 def _after(rival: CandidateScore) -> str:
     if rival.effect == STATED:
         return ("where they settle takes up what the stage misses and measures none of "
-                "them: check the values; `mbst identify` reports each against the data, and "
+                "them: check the values; `mbst identify` checks them against the data, and "
                 "a prior {value, sigma} fits it")
     return "the unexplained round reads what is left"
