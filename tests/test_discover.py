@@ -853,6 +853,7 @@ def test_a_reseeded_refit_starts_from_the_rivals_stage_fit_with_its_effect_off(m
     seen: list[np.ndarray] = []
     fake = SimpleNamespace(model=EPS_MODEL, base=base, upper={}, score=score)
     fake.neutral_start = lambda p, spec: StageScorer.neutral_start(fake, p, spec)
+    fake._bounds = lambda bounds: StageScorer._bounds(fake, bounds)
     common = dict(effect="", component="", stage="free_tie_rods", tests=[], free=[],
                   k_effect=1, cost_base=1.0, n_eff=1.0, aic_delta=0.0)
     cand = CandidateScore(key=gap.key, cost=0.6, params=cand_p, **common)
@@ -947,9 +948,9 @@ def test_a_refined_refit_takes_no_further_step_once_its_work_is_spent(monkeypatc
                                work_spent=spent)
 
     monkeypatch.setattr(structure_mod, "solve", fake_solve)
-    scorer = SimpleNamespace(stage_free=[], problem=lambda free, base: None,
+    scorer = SimpleNamespace(stage_free=[], problem=lambda free, base, bounds=None: None,
                              neutral_start=lambda p, spec: p)
-    spec = SimpleNamespace(free=())
+    spec = SimpleNamespace(free=(), bounds={})
     structure_mod.StageScorer._refit(scorer, spec, np.zeros(1), [np.zeros(1)], 15,
                                      converge=True)
     assert len(calls) == (1 if spent else structure_mod.MAX_REFINE_STEPS)
