@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from mbst.discovery import rivals
@@ -71,7 +70,7 @@ def test_a_winner_the_stated_values_match_is_not_named_and_they_stay_as_stated(s
                      cost=rival.cost_base - 0.8 * (rival.cost_base - rival.cost))
     assert rivals.matching(winner, [rival]) is rival
     gone = rivals.declined(winner, rival, rivals.Stated({INERTIA: 0.88 * true_inertia}, 0.15))
-    assert "the stated values'" in gone["reason"] and "mbst identify" in gone["reason"]
+    assert "may be the stated values'" in gone["reason"] and "mbst identify" in gone["reason"]
     stronger = replace(winner, cost=rival.cost * 0.5)
     assert rivals.matching(stronger, [rival]) is None
 
@@ -90,7 +89,6 @@ def test_a_value_the_stage_fits_already_or_a_family_without_a_tolerance_adds_no_
     odd = rivals.Stated({"motor.regularisation_velocity_rad_per_s": 1e-3, INERTIA: 0.0,
                          "wheel_mass_kg": 250.0}, 0.15)
     assert not any(s.effect == rivals.STATED for s in rivals.specs(scorer.tests, EPS_MODEL, odd))
-    assert np.isfinite(true_inertia)
 
 
 def test_the_stated_values_are_refitted_only_where_one_step_says_they_can_come_near(stage):

@@ -192,14 +192,15 @@ def _stated_reading(rival: CandidateScore, stated: Stated) -> str:
 def declined(best: CandidateScore, rival: CandidateScore, stated: Stated | None = None
              ) -> dict:
     """The record of a winner a rival matched."""
-    whose = {DRIFT: "the campaign's", STATED: "the stated values'"}.get(
-        rival.effect, "the measurement's")
+    # a match of the stated values says they can carry the misfit, not that they do
+    whose = {DRIFT: "is the campaign's", STATED: "may be the stated values'"}.get(
+        rival.effect, "is the measurement's")
     out = {"key": best.key, "stage": best.stage, "relative_gain": best.relative_gain,
            "rival": rival.key, "rival_relative_gain": rival.relative_gain,
            "rival_size": dict(rival.headline),
            "reason": (f"{best.key} removes {100 * best.relative_gain:.1f} % of the "
                       f"{best.stage} cost, and {reading(rival, stated)} alone "
-                      f"{100 * rival.relative_gain:.1f} %: what the stage misses is "
+                      f"{100 * rival.relative_gain:.1f} %: what the stage misses "
                       f"{whose}, not a catalogue effect ({_after(rival)})")}
     if rival.effect == LAG:
         out.update(sensor=rival.component, lag_ms=1e3 * rival.headline.get("lag_s", 0.0))
