@@ -627,28 +627,30 @@ def test_a_stick_slip_a_refitted_ripple_matches_is_not_named(monkeypatch):
     assert state.findings and "ripple check" in state.failures[0]
 
 
-@pytest.mark.parametrize("rack_gain, one_body, undecided", [
-    (0.65, True, True), (0.30, True, False), (0.65, False, False)])
+@pytest.mark.parametrize("rack_gain, one_body, accepted, undecided", [
+    (0.65, True, None, True), (0.30, True, None, False), (0.65, False, None, False),
+    (0.65, True, "stribeck_friction:rack", False)])
 def test_a_stribeck_name_whose_stage_still_shakes_for_another_part_is_undecided(
-        monkeypatch, rack_gain, one_body, undecided):
+        monkeypatch, rack_gain, one_body, accepted, undecided):
     """Realistic rig 1201: a rack Stribeck named in the motor at 0.39 by the output-error
     rounds (the rack's refit stalled on the sawtooth's phase). The stage kept 43.6 units
     of fast-envelope misfit after it, and a rack Stribeck removed 65 % of that: the part is
     undecided, at most even odds. Under the round's margin, or in a part that does not
-    move with the named one, the name stands."""
+    move with the named one, or where the round named the other part itself (a finding of
+    its own), the name stands."""
     import mbst.discovery.rounds.stickslip as ss
 
     finding = _finding("stribeck_friction", "motor", 0.9)
     finding.stage = "free_tie_rods"
-    rec = {"round": 5, "method": "stick_slip", "accepted": None, "candidates": [
+    rec = {"round": 5, "method": "stick_slip", "accepted": accepted, "candidates": [
         {"key": "stribeck_friction:rack", "stage": "free_tie_rods", "misfit_base": 43.6,
          "relative_gain": rack_gain, "wins": 1, "tests": 3}]}
     effects = {"stribeck_friction:rack": SimpleNamespace(effect="stribeck_friction",
                                                          component="rack")}
-    state = SimpleNamespace(findings=[finding], residuals=[],
+    state = SimpleNamespace(rounds=[{"round": 1, "accepted": None}, rec], residuals=[],
                             model=SimpleNamespace(effects=effects))
     monkeypatch.setattr(ss, "one_body_in_stage", lambda *a: one_body)
-    ss._sawtooth_in_another_part(state, rec)
+    ss.sawtooth_in_another_part([finding], state)
     assert (finding.indistinguishable_from == ["rack"]) is undecided
     assert (finding.confidence <= ss.EVEN_ODDS) is undecided
     assert ("still shaking" in finding.evidence) is undecided

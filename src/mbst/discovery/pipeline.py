@@ -40,7 +40,7 @@ from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.rounds.catalogue import proposal_finding, structure_rounds
 from mbst.discovery.rounds.equation_error import equation_error_round
 from mbst.discovery.rounds.resolution import Resolution, resolution_round
-from mbst.discovery.rounds.stickslip import stick_slip_round
+from mbst.discovery.rounds.stickslip import sawtooth_in_another_part, stick_slip_round
 from mbst.discovery.rounds.unexplained import (
     campaign_places,
     driving_input,
@@ -207,6 +207,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         timings["neural_s"] = neural_ev.get("train_seconds") or 0.0
         timings["neural_wait_s"] = time.perf_counter() - t0
     findings = [proposal_finding(p, state, sparse_ev, neural_ev) for p in state.proposals]
+    sawtooth_in_another_part(findings, state)
     findings = fold_one_body(findings + state.findings, state.residuals, model)
     state_body_sizes(findings, state.residuals, model, state.p)
     try:

@@ -408,8 +408,6 @@ def stick_slip_round(state: DiscoveryState) -> None:
     rec, finding, p = _stick_slip_record(state.ids, state.p, set(state.accepted), state.rounds,
                                          reset, state.settings.identify.seed)
     state.rounds.append(rec)
-    if finding is None:
-        _sawtooth_in_another_part(state, rec)
     if finding is not None and _ripple_matches(state, finding, rec):
         finding = None
     if finding is not None:
@@ -480,11 +478,12 @@ def _declined_for_a_ripple(state: DiscoveryState, finding: Finding, rec: dict) -
     return True
 
 
-def _sawtooth_in_another_part(state: DiscoveryState, rec: dict) -> None:
-    """A Stribeck name the output-error rounds gave a part, where the phase-free test finds
-    its stage still shaking after it and the same effect in another part of its body
-    removing at least ``MIN_GAIN`` of that envelope misfit: the sawtooth is not the named
-    part's as much as the other's, so the part is undecided (at most even odds).
+def sawtooth_in_another_part(findings: list[Finding], state: DiscoveryState) -> None:
+    """A Stribeck name the output-error rounds gave a part, where the phase-free round then
+    found its stage still shaking and the same effect in another part of its body removing
+    at least ``MIN_GAIN`` of that envelope misfit (not on most tests, so it named nothing):
+    the sawtooth is not the named part's alone, so the part is undecided (at most even
+    odds). Run on the findings as concluded (the output-error names are built last).
 
     Realistic rig 1201: a rack Stribeck (ratio 1.41, 1.75 mm/s) named in the motor at 0.39
     (39 % of the stage). The rack's own refit had stalled at 8 % on a cost that is a
@@ -492,25 +491,30 @@ def _sawtooth_in_another_part(state: DiscoveryState, rec: dict) -> None:
     After the motor's extension the stage kept 43.6 noise-power units of fast-envelope
     misfit (clean campaigns < 2), and a rack Stribeck removed 65 % of it.
     """
-    top = next(iter(rec.get("candidates", [])), None)
-    other = state.model.effects.get(top["key"]) if top else None
-    if other is None or top["relative_gain"] < MIN_GAIN:
-        return
-    for f in state.findings:
-        if f.effect != other.effect or f.stage != top["stage"] \
-                or other.component in [f.component, *f.indistinguishable_from] \
-                or not one_body_in_stage(f.component, other.component, f.stage,
-                                         state.residuals, state.model):
+    for rec in state.rounds:
+        top = next(iter(rec.get("candidates", [])), None) \
+            if rec.get("method") == "stick_slip" and not rec.get("accepted") else None
+        other = state.model.effects.get(top["key"]) if top else None
+        if other is None or top["relative_gain"] < MIN_GAIN:
             continue
-        f.indistinguishable_from.append(other.component)
-        f.confidence = min(f.confidence, EVEN_ODDS)
-        f.evidence += (
-            f"; COMPONENT UNDECIDED: the phase-free stick-slip test finds the {f.stage} "
-            f"tests still shaking with it ({top['misfit_base']:.1f} noise-power units of "
-            f"fast-envelope misfit; clean campaigns < {MIN_BASE_MISFIT:g}), and the same "
-            f"effect in {other.component}, which moves as one body with {f.component} "
-            f"here, removes {100 * top['relative_gain']:.0f} % of that (lower on "
-            f"{top['wins']}/{top['tests']} tests): the sawtooth is not {f.component}'s alone")
+        for f in findings:
+            if f.effect == other.effect and f.stage == top["stage"] \
+                    and other.component not in [f.component, *f.indistinguishable_from] \
+                    and one_body_in_stage(f.component, other.component, f.stage,
+                                          state.residuals, state.model):
+                _undecided_by_the_envelope(f, other.component, top)
+
+
+def _undecided_by_the_envelope(f: Finding, other: str, top: dict) -> None:
+    f.indistinguishable_from.append(other)
+    f.confidence = min(f.confidence, EVEN_ODDS)
+    f.evidence += (
+        f"; COMPONENT UNDECIDED: the phase-free stick-slip test finds the {f.stage} tests "
+        f"still shaking with it ({top['misfit_base']:.1f} noise-power units of fast-envelope "
+        f"misfit; clean campaigns < {MIN_BASE_MISFIT:g}), and the same effect in {other}, "
+        f"which moves as one body with {f.component} here, removes "
+        f"{100 * top['relative_gain']:.0f} % of that (lower on {top['wins']}/{top['tests']} "
+        f"tests): the sawtooth is not {f.component}'s alone")
 
 
 def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
