@@ -506,15 +506,20 @@ def sawtooth_in_another_part(findings: list[Finding], state: DiscoveryState) -> 
 
 
 def _undecided_by_the_envelope(f: Finding, other: str, top: dict) -> None:
-    f.indistinguishable_from.append(other)
-    f.confidence = min(f.confidence, EVEN_ODDS)
-    f.evidence += (
-        f"; COMPONENT UNDECIDED: the phase-free stick-slip test finds the {f.stage} tests "
-        f"still shaking with it ({top['misfit_base']:.1f} noise-power units of fast-envelope "
-        f"misfit; clean campaigns < {MIN_BASE_MISFIT:g}), and the same effect in {other}, "
-        f"which moves as one body with {f.component} here, removes "
-        f"{100 * top['relative_gain']:.0f} % of that (lower on {top['wins']}/{top['tests']} "
-        f"tests): the sawtooth is not {f.component}'s alone")
+    _name_beside(f, other, (
+        f"the phase-free stick-slip test finds the {f.stage} tests still shaking with it "
+        f"({top['misfit_base']:.1f} noise-power units of fast-envelope misfit; clean "
+        f"campaigns < {MIN_BASE_MISFIT:g}), and the same effect in {other}, which moves as "
+        f"one body with {f.component} here, removes {100 * top['relative_gain']:.0f} % of "
+        f"that (lower on {top['wins']}/{top['tests']} tests): the sawtooth is not "
+        f"{f.component}'s alone"))
+
+
+def _name_beside(finding: Finding, other: str, why: str) -> None:
+    """``other`` named beside the finding's part, at most even odds, and why."""
+    finding.indistinguishable_from.append(other)
+    finding.confidence = min(finding.confidence, EVEN_ODDS)
+    finding.evidence += f"; COMPONENT UNDECIDED: {why}"
 
 
 def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
@@ -539,14 +544,12 @@ def _split_undecided(finding: Finding, rec: dict, state: DiscoveryState,
             continue
         if (mine in reset or other.level in reset) and one_body_in_stage(
                 finding.component, other.component, finding.stage, state.residuals, model):
-            finding.indistinguishable_from.append(other.component)
-            finding.confidence = min(finding.confidence, EVEN_ODDS)
             fitted = ", ".join(f"{n} {state.p[model.param_index[n]]:.3g} (typical {reset[n]:.3g})"
                                for n in (mine, other.level) if n in reset)
-            finding.evidence += (
-                f"; COMPONENT UNDECIDED: {other.component} moves as one body with "
-                f"{finding.component} here, and the base fit's split of their friction is far "
-                f"from typical ({fitted}): the name follows that split, not the data")
+            _name_beside(finding, other.component, (
+                f"{other.component} moves as one body with {finding.component} here, and the "
+                f"base fit's split of their friction is far from typical ({fitted}): the name "
+                "follows that split, not the data"))
 
 
 def _twins_within_reach(finding: Finding, rec: dict, state: DiscoveryState) -> None:
@@ -569,14 +572,11 @@ def _twins_within_reach(finding: Finding, rec: dict, state: DiscoveryState) -> N
             or r["relative_gain"] >= MIN_GAIN
         if close and one_body_in_stage(finding.component, other.component, finding.stage,
                                        state.residuals, state.model):
-            finding.indistinguishable_from.append(other.component)
-            finding.confidence = min(finding.confidence, EVEN_ODDS)
-            finding.evidence += (
-                f"; COMPONENT UNDECIDED: {other.component} moves as one body with "
-                f"{finding.component} here and the same effect there removed "
-                f"{100 * r['relative_gain']:.0f} % (the named part: {100 * low:.0f} % or more "
-                f"in 95 % of the resamples, the better of the two in "
-                f"{100 * r['winner_better_share']:.0f} % of them): these tests do not part them")
+            _name_beside(finding, other.component, (
+                f"{other.component} moves as one body with {finding.component} here and the "
+                f"same effect there removed {100 * r['relative_gain']:.0f} % (the named part: "
+                f"{100 * low:.0f} % or more in 95 % of the resamples, the better of the two in "
+                f"{100 * r['winner_better_share']:.0f} % of them): these tests do not part them"))
 
 
 def _stick_slip_record(ids: list[PreparedTest], p: np.ndarray, accepted: set[str],
