@@ -192,6 +192,18 @@ def _base_model(campaign: Campaign, settings: DiscoverSettings, base_fit: dict |
     return identify(campaign, settings.identify, controls=False, check_known=False)
 
 
+def _named(state: DiscoveryState, sparse_ev: dict | None, neural_ev: dict | None
+           ) -> list[Finding]:
+    """The structure rounds' proposals named, beside the other rounds' findings, parts of
+    one body folded into one finding and its size stated as the body's."""
+    findings = [proposal_finding(p, state, sparse_ev, neural_ev) for p in state.proposals]
+    # the phase-free round ran after these were proposed, and can question their part
+    sawtooth_in_another_part(findings, state)
+    findings = fold_one_body(findings + state.findings, state.residuals, state.model)
+    state_body_sizes(findings, state.residuals, state.model, state.p)
+    return findings
+
+
 def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future | None,
               t_start: float) -> DiscoveryResult:
     """Evidence in, findings named, model families compared on the held-out controls."""
@@ -206,10 +218,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         neural_model, neural_ev = neural_job.result()
         timings["neural_s"] = neural_ev.get("train_seconds") or 0.0
         timings["neural_wait_s"] = time.perf_counter() - t0
-    findings = [proposal_finding(p, state, sparse_ev, neural_ev) for p in state.proposals]
-    sawtooth_in_another_part(findings, state)
-    findings = fold_one_body(findings + state.findings, state.residuals, model)
-    state_body_sizes(findings, state.residuals, model, state.p)
+    findings = _named(state, sparse_ev, neural_ev)
     try:
         judge_catalogue_names(findings, state)
     except Exception as exc:  # a check on the names must never sink them

@@ -481,7 +481,8 @@ def _declined_for_a_ripple(state: DiscoveryState, finding: Finding, rec: dict) -
 def sawtooth_in_another_part(findings: list[Finding], state: DiscoveryState) -> None:
     """A Stribeck name the output-error rounds gave a part, where the phase-free round then
     found its stage still shaking and the same effect in another part of its body removing
-    at least ``MIN_GAIN`` of that envelope misfit (not on most tests, so it named nothing):
+    at least ``MIN_GAIN`` of that envelope misfit (not on most tests, so it named nothing;
+    not a winner a ripple matched):
     the sawtooth is not the named part's alone, so the part is undecided (at most even
     odds). Run on the findings as concluded (the output-error names are built last).
 
@@ -492,8 +493,10 @@ def sawtooth_in_another_part(findings: list[Finding], state: DiscoveryState) -> 
     misfit (clean campaigns < 2), and a rack Stribeck removed 65 % of it.
     """
     for rec in state.rounds:
+        # (a winner a ripple matched shakes the stage with a rotating part, not a sawtooth)
         top = next(iter(rec.get("candidates", [])), None) \
-            if rec.get("method") == "stick_slip" and not rec.get("accepted") else None
+            if rec.get("method") == "stick_slip" and not rec.get("accepted") \
+            and not rec.get("rival_declined") else None
         other = state.model.effects.get(top["key"]) if top else None
         if other is None or top["relative_gain"] < MIN_GAIN:
             continue
