@@ -36,7 +36,7 @@ from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
 from mbst.discovery.data import residual_data
 from mbst.discovery.rounds.ripple import LOCK_P_VALUE, fast_part, ripple_findings
-from mbst.discovery.rounds.rival_findings import rival_findings
+from mbst.discovery.rounds.rival_findings import lag_findings, rival_findings
 from mbst.discovery.signature import (
     SURROGATES,
     ChannelSignature,
@@ -115,7 +115,8 @@ def unexplained_round(state: DiscoveryState) -> None:
 def _describe(state: DiscoveryState) -> None:
     """A reality a round declined its winner for (``rival_findings``), a ripple locked to a
     rotating part (``ripple_findings``), then each channel's signature of what is left
-    after them; one ``unexplained`` finding for the structured ones."""
+    after them — after a sensor's lag too where one reads as a lag (``lag_findings``); one
+    ``unexplained`` finding for the structured ones."""
     state.measure_floors("unexplained round")  # at the extended model
     found_rivals, physics = rival_findings(state)
     ripples, with_ripple = ripple_findings(state, state.p if physics is None else physics)
@@ -123,23 +124,42 @@ def _describe(state: DiscoveryState) -> None:
     physics = physics if with_ripple is None else with_ripple
     state.rival_physics = physics
     p = state.p if physics is None else physics
+    signatures = _signatures(state, p)
+    read = next((s for s in signatures if s.structured and s.best.group.startswith("lag:")),
+                None)
+    if read is not None and not any((f.signature or {}).get("kind") == "lag" for f in found_rivals):
+        # a sensor's lag biases every stage fitted on its channel, where it declined no
+        # winner too: refitted as physics, it may take what the library reads as a lag
+        lag_ms = 1e3 * read.best.quantities().get("lag_s", 0.0)
+        said = (f"{read.channel} reads {lag_ms:+.1f} ms against its twin "
+                f"({100 * read.best.cv_share:.0f} % of its residual held out, "
+                f"{100 * read.chance_share:.0f} % by chance)")
+        lags, with_lag = lag_findings(state, p, said)
+        if with_lag is not None:
+            state.findings += lags
+            state.rival_physics = p = with_lag
+            signatures = _signatures(state, p)
+    state.signatures = signatures
+    found = [s for s in signatures if s.structured]
+    if found:
+        components = {p.component for p in state.model.param_specs}
+        state.findings.append(unexplained_finding(found, components, signatures))
+
+
+def _signatures(state: DiscoveryState, p: np.ndarray) -> list[ChannelSignature]:
+    """Each channel's signature of the residual at ``p`` (kept as the extended residuals)."""
     tests = [residual_data(pt, p) for pt in state.ids]
     state.extended_residuals = tests
     places = campaign_places(state)
-    channels = list(dict.fromkeys(ch for t in tests for ch in t.channels))
     signatures = []
-    for ch in channels:
+    for ch in dict.fromkeys(ch for t in tests for ch in t.channels):
         sig = describe_channel(tests, ch, places, _noise_rms(state, ch),
                                seed=state.settings.identify.seed,
                                input_name=driving_input(state.model),
                                min_share=state.settings.min_relative_gain)
         if sig is not None:
             signatures.append(sig)
-    state.signatures = signatures
-    found = [s for s in signatures if s.structured]
-    if found:
-        components = {p.component for p in state.model.param_specs}
-        state.findings.append(unexplained_finding(found, components, signatures))
+    return signatures
 
 
 def signature_record(sig: ChannelSignature) -> dict:
