@@ -332,7 +332,7 @@ def test_a_lag_read_downstream_is_refitted_as_a_sensors_lag_first(monkeypatch):
     assert calls == [] and [f.signature["kind"] for f in state.findings] == ["periodic"]
 
 
-@pytest.mark.slow  # ~10 min
+@pytest.mark.slow  # ~8 min
 def test_a_sensor_lag_that_declined_no_winner_is_said_as_the_sensors(tmp_path_factory):
     """The powered compact plan, a clean realistic rig (seed 1302: drawn parameters, known
     values off, AR(1) noise, a 3 ms torque-sensor lag): no catalogue winner comes near the
