@@ -36,7 +36,13 @@ from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
 from mbst.discovery.data import residual_data
 from mbst.discovery.rounds.ripple import LOCK_P_VALUE, fast_part, ripple_findings
-from mbst.discovery.rounds.rival_findings import lag_findings, rival_findings
+from mbst.discovery.rounds.rival_findings import (
+    cascade_lag_finding,
+    lag_findings,
+    lag_scores,
+    lags_through_cascade,
+    rival_findings,
+)
 from mbst.discovery.signature import (
     SURROGATES,
     ChannelSignature,
@@ -65,9 +71,12 @@ def reading(sig: ChannelSignature) -> str:
     if kind == "lag":
         lag_ms = 1e3 * q.get("lag_s", 0.0)
         if lag_ms < 0:  # no sensor answers before its input: the twin is the slow one
+            # a delayed sensor upstream biases the stages fitted on it and reads so too
+            # (clean realistic rigs 1302 and 1216: the torque sensor's 3 ms)
             return (f"the model lags {sig.channel} by {-lag_ms:.1f} ms: the rig answers "
                     "faster than the model (a friction that switches more sharply, a "
-                    "stiffness or an inertia off), not a sensor's delay")
+                    "stiffness or an inertia off, or a sensor upstream whose lag biased the "
+                    "fit), not this channel's sensor's delay")
         return (f"{sig.channel} lags the input that drives the model by {lag_ms:.1f} ms "
                 "(a sensor's own filter or a delay)")
     if kind == "periodic":
@@ -115,7 +124,7 @@ def unexplained_round(state: DiscoveryState) -> None:
 def _describe(state: DiscoveryState) -> None:
     """A reality a round declined its winner for (``rival_findings``), a ripple locked to a
     rotating part (``ripple_findings``), then each channel's signature of what is left
-    after them — after a sensor's lag too where one reads as a lag (``lag_findings``); one
+    after them — after a sensor's lag too where one reads as a lag (``_read_lag``); one
     ``unexplained`` finding for the structured ones."""
     state.measure_floors("unexplained round")  # at the extended model
     found_rivals, physics = rival_findings(state)
@@ -124,21 +133,7 @@ def _describe(state: DiscoveryState) -> None:
     physics = physics if with_ripple is None else with_ripple
     state.rival_physics = physics
     p = state.p if physics is None else physics
-    signatures = _signatures(state, p)
-    read = next((s for s in signatures if s.structured and s.best.group.startswith("lag:")),
-                None)
-    if read is not None and not any((f.signature or {}).get("kind") == "lag" for f in found_rivals):
-        # a sensor's lag biases every stage fitted on its channel, where it declined no
-        # winner too: refitted as physics, it may take what the library reads as a lag
-        lag_ms = 1e3 * read.best.quantities().get("lag_s", 0.0)
-        said = (f"{read.channel} reads {lag_ms:+.1f} ms against its twin "
-                f"({100 * read.best.cv_share:.0f} % of its residual held out, "
-                f"{100 * read.chance_share:.0f} % by chance)")
-        lags, with_lag = lag_findings(state, p, said)
-        if with_lag is not None:
-            state.findings += lags
-            state.rival_physics = p = with_lag
-            signatures = _signatures(state, p)
+    signatures = _read_lag(state, p, _signatures(state, p), found_rivals)
     state.signatures = signatures
     found = [s for s in signatures if s.structured]
     if found:
@@ -146,10 +141,88 @@ def _describe(state: DiscoveryState) -> None:
         state.findings.append(unexplained_finding(found, components, signatures))
 
 
-def _signatures(state: DiscoveryState, p: np.ndarray) -> list[ChannelSignature]:
-    """Each channel's signature of the residual at ``p`` (kept as the extended residuals)."""
+def _read_lag(state: DiscoveryState, p: np.ndarray, signatures: list[ChannelSignature],
+              found_rivals: list[Finding]) -> list[ChannelSignature]:
+    """Where the library reads a lag that no declined rival refitted: a sensor's lag biases
+    every stage fitted on its channel, where it declined no winner too. Refitted as physics
+    (``lag_findings``; else carried through the cascade, ``_lag_through_cascade``), it may
+    take the reading; the signatures of what is left then."""
+    read = next((s for s in signatures if s.structured and s.best.group.startswith("lag:")),
+                None)
+    if read is None or any((f.signature or {}).get("kind") == "lag" for f in found_rivals):
+        return signatures
+    lag_ms = 1e3 * read.best.quantities().get("lag_s", 0.0)
+    said = (f"{read.channel} reads {lag_ms:+.1f} ms against its twin "
+            f"({100 * read.best.cv_share:.0f} % of its residual held out, "
+            f"{100 * read.chance_share:.0f} % by chance)")
+    scores = lag_scores(state, p)
+    lags, with_lag = lag_findings(state, scores, said)
+    if with_lag is None:
+        return _lag_through_cascade(state, p, signatures, scores, said)
+    state.findings += lags
+    state.rival_physics = with_lag
+    return _signatures(state, with_lag)
+
+
+def _lag_through_cascade(state: DiscoveryState, p: np.ndarray,
+                         signatures: list[ChannelSignature], scores: list, said: str
+                         ) -> list[ChannelSignature]:
+    """A lag no stage's refit clears alone, carried through the cascade
+    (``lags_through_cascade``), is the finding where it takes a lag the library read —
+    that channel no longer beats its phase-randomised copies, and none starts to — the
+    one that leaves the least structure. Its confidence: the vanished reading's, times
+    the share of the lag readings it took."""
+    best = None
+    for trial in lags_through_cascade(state, p, scores):
+        after = _signatures(state, trial.physics, keep=False)
+        gone = _readings_taken(signatures, after)
+        if gone and (best is None or _structure_left(after) < _structure_left(best[1])):
+            best = (trial, after, gone)
+    if best is None:
+        _signatures(state, p)  # the residuals kept are the model's as it stands
+        return signatures
+    trial, after, gone = best
+    taken = 1.0 - _lag_share(after) / max(_lag_share(signatures), 1e-300)
+    now = {a.channel: a.best.cv_share if a.best is not None else 0.0 for a in after}
+    took = ", ".join(f"{s.channel} {100 * s.best.cv_share:.0f} % → {100 * now[s.channel]:.0f} %"
+                     for s in gone)
+    how = (f"{said}: a delayed sensor biases every stage fitted on it; with its lag the "
+           f"library's lag readings are gone ({took} of the residual held out)")
+    confidence = max(signature_confidence(s) for s in gone) * float(np.clip(taken, 0.0, 1.0))
+    state.findings.append(cascade_lag_finding(trial, how, confidence))
+    state.rival_physics = trial.physics
+    return _signatures(state, trial.physics)
+
+
+def _readings_taken(before: list[ChannelSignature], after: list[ChannelSignature]
+                    ) -> list[ChannelSignature]:
+    """The lag readings of ``before`` no longer structured ``after``; none where a channel
+    starts to be structured."""
+    was = {s.channel for s in before if s.structured}
+    if any(s.structured and s.channel not in was for s in after):
+        return []
+    still = {s.channel for s in after if s.structured}
+    return [s for s in before if s.structured and s.best.group.startswith("lag:")
+            and s.channel not in still and any(a.channel == s.channel for a in after)]
+
+
+def _lag_share(signatures: list[ChannelSignature]) -> float:
+    """The held-out share of the structured lag readings, summed over channels."""
+    return sum(s.best.cv_share for s in signatures
+               if s.structured and s.best.group.startswith("lag:"))
+
+
+def _structure_left(signatures: list[ChannelSignature]) -> float:
+    return sum(s.best.cv_share for s in signatures if s.structured)
+
+
+def _signatures(state: DiscoveryState, p: np.ndarray, keep: bool = True
+                ) -> list[ChannelSignature]:
+    """Each channel's signature of the residual at ``p`` (kept as the extended residuals
+    unless ``keep`` is False)."""
     tests = [residual_data(pt, p) for pt in state.ids]
-    state.extended_residuals = tests
+    if keep:
+        state.extended_residuals = tests
     places = campaign_places(state)
     signatures = []
     for ch in dict.fromkeys(ch for t in tests for ch in t.channels):
