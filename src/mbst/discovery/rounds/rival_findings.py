@@ -144,7 +144,7 @@ def cascade_lag_finding(trial: CascadeLag, how: str, confidence: float) -> Findi
     gain = 1.0 - trial.cost / trial.cost_before
     said = rivals.reading(score)
     text = (f"OUTSIDE THE CATALOGUE: {said}. {how}. No stage clears the margins alone "
-            f"(the most: {score.stage}, {100 * trial.score.relative_gain:.1f} %); refitted "
+            f"({score.stage}: {100 * trial.score.relative_gain:.1f} %); refitted "
             f"there and carried through the cascade it lowers the identification cost by "
             f"{100 * gain:.1f} % (ΔAIC {trial.aic_delta:.0f} over the campaign)")
     return Finding(
