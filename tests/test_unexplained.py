@@ -371,7 +371,8 @@ def test_a_lag_no_stage_clears_is_said_where_the_cascade_takes_the_reading(monke
         monkeypatch.setattr(unexplained_mod, "ripple_findings", lambda state, p: ([], None))
         monkeypatch.setattr(unexplained_mod, "_signatures",
                             lambda state, p, keep=True: reads[id(p)])
-        monkeypatch.setattr(unexplained_mod, "lag_scores", lambda state, p: [])
+        monkeypatch.setattr(unexplained_mod, "lag_scores",
+                            lambda state, p: [(None, trial(p0, 0.003).score)])
         monkeypatch.setattr(unexplained_mod, "lag_findings", lambda state, scores, said: ([], None))
         monkeypatch.setattr(unexplained_mod, "lags_through_cascade",
                             lambda state, p, scores: trials)
@@ -390,12 +391,22 @@ def test_a_lag_no_stage_clears_is_said_where_the_cascade_takes_the_reading(monke
     assert "3.1 ms lag of the steering_torque_nm sensor" in lag.evidence
     assert state.rival_physics is p2 and state.signatures == quiet
     assert lag.confidence == pytest.approx(unexplained_mod.signature_confidence(ahead))
-    # a reading appears (the ripple), or none goes: the lag is not the finding
+    # a reading appears (the ripple), or none goes: the lag is not the finding, and the
+    # reading says its sensor's lag was tried (no "check that sensor's filter" hint)
     for after in ([quiet[0], quiet[1], ripple], [torque, ahead]):
         state = run([trial(p3, 0.003)], {id(p3): after})
         assert state.rival_physics is None
         assert [f.signature["kind"] for f in state.findings] == ["lag"]  # the reading's own
         assert "through" not in state.findings[0].signature
+        assert ("lag of each declared sensor (steering_torque_nm), refitted in every stage "
+                "and carried through the cascade, does not take it") in state.findings[0].evidence
+    # a channel reading behind its twin is no suspect once its sensor's lag took nothing
+    behind = dataclasses.replace(_describe(_campaign(_lagged(0.004))),
+                                 channel="steering_torque_nm")
+    assert behind.best.quantities()["lag_s"] > 0 and behind.above_chance > 0
+    state = run([trial(p3, 0.003)], {id(p0): [behind, ahead], id(p3): [behind, ahead]})
+    assert "does not take it" in state.findings[0].evidence
+    assert "delayed sensor there" not in state.findings[0].evidence
 
 
 def test_structure_left_beside_stated_values_that_matched_a_winner_says_to_check_them(

@@ -134,13 +134,15 @@ def _describe(state: DiscoveryState) -> None:
     physics = physics if with_ripple is None else with_ripple
     state.rival_physics = physics
     p = state.p if physics is None else physics
-    signatures = _read_lag(state, p, _signatures(state, p), found_rivals)
+    signatures, not_lag = _read_lag(state, p, _signatures(state, p), found_rivals)
     state.signatures = signatures
     found = [s for s in signatures if s.structured]
     if found:
         components = {p.component for p in state.model.param_specs}
-        state.findings.append(unexplained_finding(found, components, signatures,
-                                                  stated_values_note(state.rounds)))
+        # a sensor whose lag was refitted and took nothing is no suspect behind the reading
+        state.findings.append(unexplained_finding(
+            found, components, () if not_lag else signatures,
+            not_lag + stated_values_note(state.rounds)))
 
 
 def stated_values_note(rounds: list[dict]) -> str:
@@ -162,15 +164,16 @@ def stated_values_note(rounds: list[dict]) -> str:
 
 
 def _read_lag(state: DiscoveryState, p: np.ndarray, signatures: list[ChannelSignature],
-              found_rivals: list[Finding]) -> list[ChannelSignature]:
+              found_rivals: list[Finding]) -> tuple[list[ChannelSignature], str]:
     """Where the library reads a lag that no declined rival refitted: a sensor's lag biases
     every stage fitted on its channel, where it declined no winner too. Refitted as physics
     (``lag_findings``; else carried through the cascade, ``_lag_through_cascade``), it may
-    take the reading; the signatures of what is left then."""
+    take the reading; the signatures of what is left then, and what the finding says where
+    the sensors' lags were refitted and took none of it ('' otherwise)."""
     read = next((s for s in signatures if s.structured and s.best.group.startswith("lag:")),
                 None)
     if read is None or any((f.signature or {}).get("kind") == "lag" for f in found_rivals):
-        return signatures
+        return signatures, ""
     lag_ms = 1e3 * read.best.quantities().get("lag_s", 0.0)
     said = (f"{read.channel} reads {lag_ms:+.1f} ms against its twin "
             f"({100 * read.best.cv_share:.0f} % of its residual held out, "
@@ -181,12 +184,12 @@ def _read_lag(state: DiscoveryState, p: np.ndarray, signatures: list[ChannelSign
         return _lag_through_cascade(state, p, signatures, scores, said)
     state.findings += lags
     state.rival_physics = with_lag
-    return _signatures(state, with_lag)
+    return _signatures(state, with_lag), ""
 
 
 def _lag_through_cascade(state: DiscoveryState, p: np.ndarray,
                          signatures: list[ChannelSignature], scores: list, said: str
-                         ) -> list[ChannelSignature]:
+                         ) -> tuple[list[ChannelSignature], str]:
     """A lag no stage's refit clears alone, carried through the cascade
     (``lags_through_cascade``), is the finding where it takes a lag the library read —
     that channel no longer beats its phase-randomised copies, and none starts to — the
@@ -200,7 +203,10 @@ def _lag_through_cascade(state: DiscoveryState, p: np.ndarray,
             best = (trial, after, gone)
     if best is None:
         _signatures(state, p)  # the residuals kept are the model's as it stands
-        return signatures
+        sensors = ", ".join(dict.fromkeys(score.component for _, score in scores))
+        return signatures, (f". The lag of each declared sensor ({sensors}), refitted in "
+                            "every stage and carried through the cascade, does not take "
+                            "it" if sensors else "")
     trial, after, gone = best
     taken = 1.0 - _lag_share(after) / max(_lag_share(signatures), 1e-300)
     now = {a.channel: a.best.cv_share if a.best is not None else 0.0 for a in after}
@@ -211,7 +217,7 @@ def _lag_through_cascade(state: DiscoveryState, p: np.ndarray,
     confidence = max(signature_confidence(s) for s in gone) * float(np.clip(taken, 0.0, 1.0))
     state.findings.append(cascade_lag_finding(trial, how, confidence))
     state.rival_physics = trial.physics
-    return _signatures(state, trial.physics)
+    return _signatures(state, trial.physics), ""
 
 
 def _readings_taken(before: list[ChannelSignature], after: list[ChannelSignature]
