@@ -126,8 +126,7 @@ def lags_through_cascade(state: DiscoveryState, p: np.ndarray,
     for _, score in sorted(scores, key=lambda c: -c[1].relative_gain):
         if score.fell_back or score.relative_gain <= 0.0:
             continue
-        physics = with_the_cascade(state, score, cost_before)
-        cost, _ = total_cost(state.ids, physics, state.scales, state.settings.identify.decimate)
+        physics, cost = _carried(state, score)
         aic = state.base_n_eff * math.log(cost / cost_before) + 2 * score.k_effect
         if cost < cost_before and aic <= -aic_drop(state, score.k_effect):
             lag = next(n for n in score.free if n in rivals.parameters(state.model))
@@ -157,21 +156,25 @@ def cascade_lag_finding(trial: CascadeLag, how: str, confidence: float) -> Findi
     )
 
 
-def with_the_cascade(state: DiscoveryState, score: CandidateScore,
-                     cost_to_beat: float | None = None) -> np.ndarray:
+def with_the_cascade(state: DiscoveryState, score: CandidateScore) -> np.ndarray:
     """The rival's stage refit carried through the cascade: every other stage refitted
     with the rival at its size (a sensor's lag acts on every stage that logs the channel;
     the compact plan's 2.8 ms lag, refitted in the blocked column and added to the
     free-tie-rods stage as that stage was fitted without it, took the control FIT from
-    99.0 to 98.5 %). Kept only where it lowers the identification cost (``cost_to_beat``, by
-    default the extended model's)."""
+    99.0 to 98.5 %). Kept only where it lowers the identification cost."""
+    p, cost = _carried(state, score)
+    return p if cost < state.cost else score.params
+
+
+def _carried(state: DiscoveryState, score: CandidateScore) -> tuple[np.ndarray, float]:
+    """The cascade refitted from the rival's stage refit, the rival held at its size outside
+    its stage, and its identification cost (or the start's, where that is lower)."""
     trial_free = dict(state.extra_free)
     trial_free[score.stage] = tuple(trial_free.get(score.stage, ())) + tuple(
         n for n in score.free if n in rivals.parameters(state.model))
-    p, cost = extension.extended_cascade(
+    return extension.extended_cascade(
         state.campaign, dataclasses.replace(state.settings.identify, multistart=1), state.ids,
         state.scales, [score.params], trial_free)
-    return p if cost < (state.cost if cost_to_beat is None else cost_to_beat) else score.params
 
 
 def _refit(state: DiscoveryState, gone: dict) -> tuple[CandidateScore, dict] | None:

@@ -201,8 +201,7 @@ def _lag_through_cascade(state: DiscoveryState, p: np.ndarray,
         gone = _readings_taken(signatures, after)
         if gone and (best is None or _structure_left(after) < _structure_left(best[1])):
             best = (trial, after, gone)
-    if best is None:
-        _signatures(state, p)  # the residuals kept are the model's as it stands
+    if best is None:  # the trials kept no residuals: the model's as it stands stay
         sensors = ", ".join(dict.fromkeys(score.component for _, score in scores))
         return signatures, (f". The lag of each declared sensor ({sensors}), refitted in "
                             "every stage and carried through the cascade, does not take "
