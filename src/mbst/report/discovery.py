@@ -235,7 +235,7 @@ def signature_lines(result: DiscoveryResult) -> list[str]:
 def _verdict(sig: ChannelSignature, level: float) -> str:
     """A channel's verdict: structure left, a small structure below the margin, or none;
     with the periodic reading dropped for sitting on one side of the sweep, if one was."""
-    aside = f"; {sig.one_sided}" if sig.one_sided else ""
+    aside = f"; {sig.not_a_ripple}" if sig.not_a_ripple else ""
     if sig.structured:
         return "**structure left** (see figures/unexplained.png)" + aside
     if 0 < sig.above_chance < sig.min_share and sig.explained_rms > sig.noise_rms:

@@ -278,7 +278,7 @@ def signature_record(sig: ChannelSignature) -> dict:
         "ranking": [{"group": g.group, "share_of_residual": g.cv_share}
                     for g in sig.ranking[:5]],
         # a periodic reading dropped because it sat on one side of the sweep
-        **({"not_a_ripple": sig.one_sided} if sig.one_sided else {}),
+        **({"not_a_ripple": sig.not_a_ripple} if sig.not_a_ripple else {}),
     }
 
 
