@@ -48,10 +48,10 @@ def _lagged(lag_s: float):
     return structure
 
 
-def _describe(tests):
+def _describe(tests, min_share: float = 0.0):
     places = {t.id: k / max(len(tests) - 1, 1) - 0.5 for k, t in enumerate(tests)}
     return describe_channel(tests, CH, places, noise_rms=0.02 * 0.2,
-                            input_name="steering_angle_rad")
+                            input_name="steering_angle_rad", min_share=min_share)
 
 
 def test_a_channel_that_lags_the_angle_is_described_as_a_lag_of_its_size():
@@ -140,10 +140,8 @@ def test_a_structure_that_repeats_with_the_motion_is_not_read_as_a_ripple(seed):
     ones by the margin, it is no ripple; a ripple beside the same transient keeps its
     reading at its order."""
     def describe(structure):
-        tests = _campaign(structure, seed, amplitudes_deg=(30, 30, 30, 30))
-        places = {t.id: k / 3 - 0.5 for k, t in enumerate(tests)}
-        return describe_channel(tests, CH, places, noise_rms=0.02 * 0.2,
-                                input_name="steering_angle_rad", min_share=0.10)
+        return _describe(_campaign(structure, seed, amplitudes_deg=(30, 30, 30, 30)),
+                         min_share=0.10)
 
     transient = _after_each_reversal(0.6)
     sig = describe(transient)
@@ -188,9 +186,7 @@ def test_a_ripple_that_predicts_less_than_the_margin_above_chance_is_not_a_struc
     """The margin a catalogue effect must clear (10 % of what is left) holds for a
     signature too: a ripple 11 % of the residual (3 % by chance) is seen, and below it."""
     def strict(tests):
-        places = {t.id: k / (len(tests) - 1) - 0.5 for k, t in enumerate(tests)}
-        return describe_channel(tests, CH, places, noise_rms=0.02 * 0.2,
-                                input_name="steering_angle_rad", min_share=0.10)
+        return _describe(tests, min_share=0.10)
 
     tests = _campaign(lambda t, clean, motor: 0.012 * np.sin(18 * motor), seed=1)
     loose = _describe(tests)

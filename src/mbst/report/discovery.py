@@ -234,7 +234,7 @@ def signature_lines(result: DiscoveryResult) -> list[str]:
 
 def _verdict(sig: ChannelSignature, level: float) -> str:
     """A channel's verdict: structure left, a small structure below the margin, or none;
-    with the periodic reading dropped for sitting on one side of the sweep, if one was."""
+    with why a periodic reading was dropped, if one was (``ChannelSignature.not_a_ripple``)."""
     aside = f"; {sig.not_a_ripple}" if sig.not_a_ripple else ""
     if sig.structured:
         return "**structure left** (see figures/unexplained.png)" + aside

@@ -277,7 +277,7 @@ def signature_record(sig: ChannelSignature) -> dict:
         "terms": _terms(best),
         "ranking": [{"group": g.group, "share_of_residual": g.cv_share}
                     for g in sig.ranking[:5]],
-        # a periodic reading dropped because it sat on one side of the sweep
+        # why a periodic reading was dropped: one side of the sweep, or no order stood out
         **({"not_a_ripple": sig.not_a_ripple} if sig.not_a_ripple else {}),
     }
 
