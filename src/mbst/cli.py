@@ -31,7 +31,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
 # mbst bench's realism flags → BenchRealism fields
 _REALISM_FLAGS = ("draw_rig", "known_error", "known_sigma", "draw_sizes", "noise_ar1",
                   "quantise", "torque_lag_s", "offset_drift", "friction_drift", "cogging_nm",
-                  "cogging_order", "rack_ratio_variation", "oversample", "smoothing", "plan_jitter")
+                  "cogging_order", "rack_ratio_variation", "angle_eccentricity_deg",
+                  "oversample", "smoothing", "plan_jitter")
 
 
 def _bench_realism(args: argparse.Namespace):
@@ -259,6 +260,9 @@ def _add_realism_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--rack-ratio-variation", type=float, metavar="A",
                    help="a variable-ratio rack: travel per pinion radian r·(1 + A·θ²), θ the "
                    "pinion angle in rad (not a catalogue effect)")
+    g.add_argument("--angle-eccentricity-deg", type=float, metavar="DEG",
+                   help="the steering-angle encoder reads off by this much once per "
+                   "revolution (not a catalogue effect)")
     g.add_argument("--oversample", type=int, metavar="K",
                    help="the bench integrates K times finer than it samples")
     g.add_argument("--smoothing", type=float, metavar="F",

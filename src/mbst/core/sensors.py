@@ -26,6 +26,9 @@ class SensorRealities:
     own first-order filter. ``quantum``: the resolution (an encoder's count,
     an ADC's step). ``drift``: the offset's warm-up change in units of the
     noise rms, reached with time constant ``drift_tau_s`` of campaign time.
+    ``eccentricity``: an angle sensor's error once per revolution of what it
+    reads (a code disc mounted off its shaft's axis), ``e·sin(θ + phase)`` in
+    the channel's unit.
     """
 
     noise_ar1: float = 0.0
@@ -33,6 +36,8 @@ class SensorRealities:
     quantum: float = 0.0
     drift: float = 0.0
     drift_tau_s: float = 120.0
+    eccentricity: float = 0.0
+    eccentricity_phase: float = 1.0
 
 
 def coloured_noise(n: int, rms: float, ar1: float, rng: np.random.Generator) -> np.ndarray:
@@ -58,6 +63,8 @@ def measure(clean: np.ndarray, time_s: np.ndarray, rms: float, rng: np.random.Ge
     t = np.asarray(time_s, dtype=np.float64)
     dt = float((t[-1] - t[0]) / max(len(t) - 1, 1))
     y = exponential_filter(clean, dt, realities.lag_s) if realities.lag_s > 0 else np.array(clean)
+    if realities.eccentricity:
+        y = y + realities.eccentricity * np.sin(np.asarray(clean) + realities.eccentricity_phase)
     if realities.drift:
         elapsed = campaign_time_s + (t - t[0])
         y = y + realities.drift * rms * (1.0 - np.exp(-elapsed / realities.drift_tau_s))

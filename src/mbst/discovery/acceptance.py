@@ -43,9 +43,10 @@ EVIDENCE_SHARE_OF_MARGIN = 0.5
 FALSE_ALARM_RATE = 0.01
 
 
-# The ranking bootstrap: resamples of the stage's data, and the most rivals it weighs.
+# The ranking bootstrap: resamples of the stage's data, and the most rivals it weighs (the
+# winner, up to four realities outside the catalogue, ``rivals.py``, and its runners-up).
 BOOTSTRAP_RESAMPLES = 400
-BOOTSTRAP_RIVALS = 6
+BOOTSTRAP_RIVALS = 7
 # A rival the winner beats in fewer of the resamples than this is an alternative the
 # campaign does not rule out (the conventional 95 %): the finding names it beside the winner.
 SEPARATED_SHARE = 0.95

@@ -33,6 +33,21 @@ for the effect). The family says how far its stated values may be off
 says which values would move, never changing them (``mbst identify`` checks each against
 the data).
 
+Sensor zeros that differ between cut-outs. eps-model.md: "Asymmetric friction is only
+separable from a sensor offset because the offset is campaign-wide": a later stage holds
+the torque offset the blocked column set. That stage set it with the steering angle's zero
+taken as where the column was clamped; an angle read a little off there (an encoder
+mounted 0.1° eccentric, bench seed 1601) moves the offset by the torsion bar's stiffness
+times the error, and in the free tie-rods a torque offset is a direction-independent level:
+an asymmetric friction. That rig had "asymmetric friction in rack or motor" named at 0.50
+(71.6 % of the free-tie-rods stage); the torque offset refitted there removes 82.5 %, and
+with it free the asymmetry's ratio goes to 0.97. The held offsets of a stage's channels,
+freed, are a rival of its winner. They decline no name: the campaign-wide offset is the
+spec's contract, and a true motor asymmetry (seed 1604, ratio 1.35) is matched by them as
+well (43.8 % for the effect, 53.4 % for the offset); they enter the ranking bootstrap, so
+the confidence says how often the data prefer the effect, and the finding says the offset
+is not ruled out.
+
 A ripple locked to a rotating part (``ModelDefinition.ripple``, a motor's cogging) is
 refitted at the order the residual's fast part reads (``rounds/ripple.py``): the rival of
 a stick-slip name, and described by the unexplained round.
@@ -48,6 +63,7 @@ from mbst.discovery.structure import CandidateScore, StageScorer
 LAG = "sensor_lag"
 DRIFT = "friction_drift"
 RIPPLE = "torque_ripple"
+OFFSET = "sensor_zero"
 STATED = "stated_values"
 # where the lag's refit starts (× 0.3, 1, 3: ``structure.start_grid``): a sensor filter's
 # few milliseconds
@@ -74,6 +90,26 @@ def drift_spec(parameter: str) -> EffectSpec:
     """Friction levels that change over the campaign's running order, as a candidate."""
     return EffectSpec(effect=DRIFT, component="campaign", headline={"change": parameter},
                       free=(parameter,), default_size={parameter: TYPICAL_DRIFT})
+
+
+def offsets_spec(held: dict[str, float], model: ModelDefinition) -> EffectSpec:
+    """The sensor offsets a stage holds from an earlier one (name → the value held), freed
+    as one candidate that starts where they are held."""
+    channels = [model.offset_channels[n] for n in held]
+    return EffectSpec(effect=OFFSET, component="+".join(channels),
+                      headline={ch: n for ch, n in zip(channels, held, strict=True)},
+                      free=tuple(held), default_size=dict(held),
+                      bounds={n: (model.spec(n).lower, model.spec(n).upper) for n in held})
+
+
+def held_offsets(scorer: StageScorer) -> dict[str, float]:
+    """The offsets of the channels ``scorer``'s tests measure that its stage does not fit,
+    at the values its base refit holds them."""
+    model = scorer.model
+    measured = {ch for pt in scorer.tests for ch in pt.measured}
+    p = scorer.base_refit()[0]
+    return {n: float(p[model.param_index[n]]) for n, ch in model.offset_channels.items()
+            if ch in measured and n not in scorer.stage_free}
 
 
 def ripple_spec(ripple: Ripple) -> EffectSpec:
@@ -113,11 +149,12 @@ def stated_spec(stated: Stated, model: ModelDefinition) -> EffectSpec:
                       bounds=bounds)
 
 
-def specs(tests: list, model: ModelDefinition, stated: Stated | None = None
-          ) -> list[EffectSpec]:
+def specs(tests: list, model: ModelDefinition, stated: Stated | None = None,
+          held: dict[str, float] | None = None) -> list[EffectSpec]:
     """Each lag the family declares for a channel ``tests`` measure, its drift where the
-    tests stand at two places in the running order or more, and the ``stated`` known
-    values (held fixed by the campaign) where the family says they may be off."""
+    tests stand at two places in the running order or more, the ``stated`` known
+    values (held fixed by the campaign) where the family says they may be off, and the
+    ``held`` offsets (``held_offsets``)."""
     measured = {ch for pt in tests for ch in pt.measured}
     out = [lag_spec(ch, name) for ch, name in model.sensor_lags.items() if ch in measured]
     if model.campaign_drift is not None and len({pt.place for pt in tests}) > 1:
@@ -126,6 +163,8 @@ def specs(tests: list, model: ModelDefinition, stated: Stated | None = None
         spec = stated_spec(stated, model)
         if spec.free:
             out.append(spec)
+    if held:
+        out.append(offsets_spec(held, model))
     return out
 
 
@@ -143,7 +182,7 @@ def rivals(scorer: StageScorer, model: ModelDefinition, n_eff: float,
     their linearised refit reaches ``STATED_SCREEN_SHARE`` of the winner's share."""
     mine = stated.without(scorer.stage_free) if stated is not None else None
     out = []
-    for spec in specs(scorer.tests, model, mine):
+    for spec in specs(scorer.tests, model, mine, held_offsets(scorer)):
         if spec.effect == STATED and \
                 scorer.linearised_share(spec) < STATED_SCREEN_SHARE * winner_share:
             continue  # they cannot come near the winner: the refit would cost seconds
@@ -152,15 +191,19 @@ def rivals(scorer: StageScorer, model: ModelDefinition, n_eff: float,
 
 
 def matching(best: CandidateScore, found: list[CandidateScore]) -> CandidateScore | None:
-    """The rival that removes at least as much of the stage as ``best``, if any."""
+    """The rival that removes at least as much of the stage as ``best``, if any (the held
+    offsets only share its confidence: the module's docstring)."""
     return next((s for s in sorted(found, key=lambda s: -s.relative_gain)
-                 if not s.fell_back and s.relative_gain >= best.relative_gain), None)
+                 if not s.fell_back and s.effect != OFFSET
+                 and s.relative_gain >= best.relative_gain), None)
 
 
 def label(effect: str, component: str) -> str:
     """A candidate as a sentence names it: a rival of the catalogue in the rig's words."""
     if effect == STATED:
         return "the campaign's stated known values a bit off"
+    if effect == OFFSET:  # re-zeroed between cut-outs, or the input's zero a little off
+        return f"a zero of {component.replace('+', ' and ')} that differs in this cut-out"
     return f"{effect} in {component}"
 
 
@@ -169,6 +212,9 @@ def reading(rival: CandidateScore, stated: Stated | None = None) -> str:
     for a refit of them)."""
     if rival.effect == STATED:
         return _stated_reading(rival, stated or Stated({}, 0.0))
+    if rival.effect == OFFSET:
+        return "the zero of " + ", ".join(f"{ch} at {v:.4g}" for ch, v in rival.headline.items()) \
+            + " refitted in this cut-out"
     if rival.effect == DRIFT:
         change = rival.headline.get("change", 0.0)
         return (f"friction levels {'rising' if change > 0 else 'falling'} "

@@ -102,7 +102,9 @@ class BenchRealism:
     realities. ``friction_drift``: Coulomb levels that fall by this fraction as the
     rig warms up over the campaign, ``cogging_nm``, the motor's detent torque
     (``motor.cogging_torque_nm``) at ``cogging_order`` periods per revolution, and ``rack_ratio_variation``, a variable-ratio
-    rack quicker off centre (``rack_pinion.ratio_variation_per_rad2``), are not
+    rack quicker off centre (``rack_pinion.ratio_variation_per_rad2``), and
+    ``angle_eccentricity_deg``, a steering-angle encoder whose reading is off by
+    this much once per revolution (the angle the model is driven with), are not
     catalogue effects: discovery can only describe them (an ``unexplained`` finding). ``oversample`` and
     ``smoothing``: the bench integrates on a finer grid than it samples and with
     regularisation velocities times ``smoothing``. ``plan_jitter``: test
@@ -121,6 +123,7 @@ class BenchRealism:
     cogging_nm: float = 0.0
     cogging_order: int = 18
     rack_ratio_variation: float = 0.0
+    angle_eccentricity_deg: float = 0.0
     oversample: int = 1
     smoothing: float = 1.0
     plan_jitter: float = 0.0
@@ -142,6 +145,8 @@ class BenchRealism:
             lag_s=self.torque_lag_s if channel == "steering_torque_nm" else 0.0,
             quantum=SENSOR_QUANTUM.get(channel, 0.0) if self.quantise else 0.0,
             drift=self.offset_drift if channel != "steering_angle_rad" else 0.0,
+            eccentricity=(math.radians(self.angle_eccentricity_deg)
+                          if channel == "steering_angle_rad" else 0.0),
         )
 
 
