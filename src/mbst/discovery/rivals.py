@@ -212,9 +212,6 @@ def reading(rival: CandidateScore, stated: Stated | None = None) -> str:
     for a refit of them)."""
     if rival.effect == STATED:
         return _stated_reading(rival, stated or Stated({}, 0.0))
-    if rival.effect == OFFSET:
-        return "the zero of " + ", ".join(f"{ch} at {v:.4g}" for ch, v in rival.headline.items()) \
-            + " refitted in this cut-out"
     if rival.effect == DRIFT:
         change = rival.headline.get("change", 0.0)
         return (f"friction levels {'rising' if change > 0 else 'falling'} "

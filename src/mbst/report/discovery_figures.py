@@ -60,7 +60,10 @@ def reversal_zoom(result, path: Path, half_window_s: float = 0.6) -> None:
 
 
 def structure_bars(result, path: Path) -> None:
-    """Share of the stage's residual cost each catalogue candidate removes, per round."""
+    """Share of the stage's residual cost each catalogue candidate removes, per round, with
+    the realities outside the catalogue refitted as the winner's rivals (grey,
+    ``discovery/rivals.py``): a torque zero that removes more than the winner is the reason
+    for its low confidence, and belongs beside it."""
     rounds = [r for r in result.rounds if r["candidates"]]
     if not rounds:
         fig, ax = plt.subplots(figsize=(6, 2))
@@ -68,18 +71,26 @@ def structure_bars(result, path: Path) -> None:
         ax.set_axis_off()
         plots.save_figure(fig, path)
         return
-    n = max(len(r["candidates"]) for r in rounds)
+    n = max(len(r["candidates"]) + len(r.get("rivals", [])) for r in rounds)
     fig, axes = plt.subplots(1, len(rounds), figsize=(6.5 * len(rounds), 0.28 * n + 1.6),
                              squeeze=False)
     for ax, r in zip(axes[0], rounds, strict=True):
-        cands = r["candidates"]
+        cands = sorted(r["candidates"] + [{**c, "rival": True} for c in r.get("rivals", [])],
+                       key=lambda c: -c["relative_gain"])
         gains = [100 * max(c["relative_gain"], -5.0 / 100) for c in cands]
         colors = ["tab:green" if c["key"] == r["accepted"] else "tab:blue" for c in cands]
         y = np.arange(len(cands))[::-1]
-        ax.barh(y, gains, color=colors)
+        rival = np.array([bool(c.get("rival")) for c in cands])
+        ax.barh(y[~rival], np.array(gains)[~rival], color=np.array(colors)[~rival])
+        if rival.any():
+            ax.barh(y[rival], np.array(gains)[rival], color="tab:gray",
+                    label="rival outside the catalogue")
         # a refit that ended above the base cost is scored with the effect off (gain 0)
-        ax.set_yticks(y, [f"{c['key']} ({c['stage']})" + (" — refit stuck, off"
-                                                          if c.get("fell_back") else "")
+        # a rival of several channels has a long key: wrapped, not cut at the figure's edge
+        ax.set_yticks(y, [textwrap.fill(f"{c['key']} ({c['stage']})"
+                                        + (" — rival" if c.get("rival") else "")
+                                        + (" — refit stuck, off" if c.get("fell_back") else ""),
+                                        60)
                           for c in cands], fontsize=7)
         method = r.get("method")
         margin = {"stick_slip": stickslip.MIN_GAIN,
