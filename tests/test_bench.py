@@ -227,6 +227,30 @@ def test_cli_rejects_bad_effect(fast_demo, tmp_path, capsys, bad):
     assert not out.exists()  # validated before anything is written
 
 
+def test_a_rig_that_diverges_writes_no_campaign_and_says_where(tmp_path, capsys):
+    """An HPS curve (gain c1·e^|T|) past a torsion-bar stop makes the powered loop unstable
+    and the model has no motor torque limit: the bench wrote a campaign of NaNs, which
+    discovery then refused row by row. Now it refuses, naming the test and the instant."""
+    plan = [t for t in bench.compact_assist_plan() if t.id == "on_loaded_1hz_normal_60kph"]
+    recipe = BenchRecipe(effects=["stiffness_limit_stop:torsion_bar"], plan=plan,
+                         assist_characteristic="hps")
+    with pytest.raises(ValueError, match=r"test 'on_loaded_1hz_normal_60kph' "
+                       r"\(tires_on_ground\): the simulated rig diverged at t = 1\.1\d\d s"):
+        run_bench(tmp_path / "run", recipe)
+    assert not (tmp_path / "run").exists()
+    # ... the same through the command: one line, exit 2, nothing written
+    out = tmp_path / "cli"
+    assert main(["bench", "--out", str(out), "--plan", "compact-assist",
+                 "--assist-characteristic", "hps", "--effect", "stiffness_limit_stop:torsion_bar",
+                 "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mbst bench: error: test 'on_loaded_") and "\n" not in err, err
+    assert "assist" in err and not out.exists()
+    # the same plan with the eps curve is a campaign
+    recipe = BenchRecipe(effects=["stiffness_limit_stop:torsion_bar"], plan=plan)
+    assert read_campaign(run_bench(tmp_path / "eps", recipe)).tests
+
+
 # --------------------------------------------------------------------------------------
 # A bench that is not the model (issue #30): drawn rigs, off-grid sizes, real sensors
 # --------------------------------------------------------------------------------------

@@ -443,6 +443,7 @@ def simulate_plan(recipe: BenchRecipe) -> list[tuple[TestSpec, pd.DataFrame]]:
         # the test's own assist curve and damping, in the kernel's layout
         p_test = route(model, spec, p[None])[0][:N_PARAMS]
         t, ang, sim = _run_test(pt, p_test, rate, recipe.realism, campaign_time_s)
+        _check_finite(spec, t, sim)
         cols = {"time_s": t}
         for ch in _channels_for(pt.scenario, recipe.sensors):
             if ch == "motor_current_a" and pt.motor != "assist":
@@ -471,6 +472,29 @@ def _run_test(pt: PlannedTest, p_test: np.ndarray, rate_hz: float, realism: Benc
         t, ang = t[::k], ang[::k]
         sim = {ch: v[::k] for ch, v in sim.items()}
     return t, ang, sim
+
+
+def _check_finite(spec: TestSpec, t: np.ndarray, sim: dict[str, np.ndarray]) -> None:
+    """Refuse a test whose simulated rig diverged: no campaign of NaNs is written.
+
+    The model has no motor torque limit, so where the rig itself is unstable its signals
+    grow without bound: an HPS curve's gain c1·e^|T| past a torsion-bar stop, fed back
+    from the torsion bar to the motor through the compliant worm gear (finer integration
+    does not help: the divergence comes at the same instant at 1–32× the sub-steps).
+    """
+    first = {ch: int(np.argmin(np.isfinite(v))) for ch, v in sim.items()
+             if not np.all(np.isfinite(v))}
+    if not first:
+        return
+    ch = min(first, key=first.get)
+    hint = (" A powered test: the assist's gain fed back through the worm gear makes the "
+            "loop unstable where the torque grows (the model has no motor torque limit); "
+            "try the eps characteristic, a smaller effect or a passive plan."
+            if spec.motor == "assist" else "")
+    raise ValueError(
+        f"test '{spec.id}' ({spec.scenario}): the simulated rig diverged at "
+        f"t = {t[first[ch]]:.3f} s ({ch.removeprefix('internal.')} is not finite from "
+        f"sample {first[ch]} on); no campaign was written.{hint}")
 
 
 def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
@@ -519,9 +543,9 @@ def truth_record(recipe: BenchRecipe) -> dict:
 
 def run_bench(out_dir: str | Path, recipe: BenchRecipe, overwrite: bool = True) -> Path:
     """Write ``out_dir/campaign/`` and ``out_dir/truth.json``; return the campaign path."""
+    tests = simulate_plan(recipe)  # first: a rig that diverges leaves no folder behind
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tests = simulate_plan(recipe)
     camp = write_campaign(
         out / "campaign", name=recipe.name, system=SYSTEM_NAME, known=recipe.known(), tests=tests,
         extra={"generated_by": "mbst bench", "seed": recipe.seed, **recipe.campaign_extra()},
