@@ -780,6 +780,43 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     assert refitted == []
 
 
+def test_a_stage_whose_winner_a_rival_matched_is_not_called_at_the_noise_floor():
+    """Realistic powered rig r5 (stop 71, a motor Dahl term planted): the stated values
+    matched free tie-rods' winner (13.5 % against 12.3 %), and the round then stopped on the
+    tyres' best, 1.7 %, saying "the residual is at the noise floor of the catalogue", two
+    lines under the stage it had just declined. The claim now leaves that stage out, and
+    the summary says what was matched instead of "down to the noise floor"."""
+    from types import SimpleNamespace
+
+    weak = CandidateScore(key="asymmetric_friction:tires", effect="asymmetric_friction",
+                          component="tires", stage="tires_on_ground", tests=["t"], free=[],
+                          k_effect=1, cost_base=1.0, cost=0.983, n_eff=300.0, aic_delta=-2.0,
+                          params=np.zeros(1))
+    plain = acceptance.margin_shortfall(weak, 0.1, 10.0)
+    assert plain.endswith(": the residual is at the noise floor of the catalogue")
+    said = acceptance.margin_shortfall(weak, 0.1, 10.0, ("free_tie_rods",))
+    assert said.startswith("best candidate asymmetric_friction:tires removes 1.7 %")
+    assert "the residual of the other stages than free_tie_rods (whose winner a reality " \
+        "outside the catalogue matched) is at the noise floor" in said
+    from mbst.report.discovery import markdown_summary
+
+    result = SimpleNamespace(
+        campaign="r5", wall_s=1.0, findings=[], resolution=[], benchmark=None, signatures=[],
+        failures=[], comparison=pd.DataFrame({"test": ["c"], "channel": ["steering_torque_nm"],
+                                              "model": ["base"], "fit_percent": [98.8]}),
+        rounds=[{"round": 1, "reason": said, "rival_declined": [
+            {"key": "presliding_hysteresis:rack", "stage": "free_tie_rods",
+             "reason": "the stated values alone 13.5 %"}]}])
+    text = pipeline_mod.DiscoveryResult.summary(result)
+    assert "presliding_hysteresis:rack matched as well by a reality outside" in text
+    page = markdown_summary(result)
+    assert "No finding: no catalogue effect is named" in page
+    assert "down to the noise floor" not in text + page
+    result.rounds[0].pop("rival_declined")
+    assert "down to the noise floor" in pipeline_mod.DiscoveryResult.summary(result)
+    assert "down to the noise floor" in markdown_summary(result)
+
+
 def test_look_alikes_are_refitted_from_each_others_stage_fit(monkeypatch):
     """A look-alike that fits some test of the stage better than the round's winner is
     refitted from the winner's stage fit, and the winner from its; a candidate the winner

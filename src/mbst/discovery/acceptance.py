@@ -153,14 +153,19 @@ def shows_evidence(s: CandidateScore, min_gain: float, min_aic_drop: float) -> b
     return s.relative_gain >= EVIDENCE_SHARE_OF_MARGIN * min_gain and s.aic_delta <= -min_aic_drop
 
 
-def margin_shortfall(best: CandidateScore, min_gain: float, min_aic_drop: float) -> str | None:
-    """Why the best candidate does not clear the margins, or ``None`` when it does."""
+def margin_shortfall(best: CandidateScore, min_gain: float, min_aic_drop: float,
+                     declined: tuple[str, ...] = ()) -> str | None:
+    """Why the best candidate does not clear the margins, or ``None`` when it does.
+    ``declined``: the stages whose winner a rival matched (``rivals.py``), which are not
+    at the noise floor and are left out of the claim."""
     if best.relative_gain >= min_gain and best.aic_delta <= -min_aic_drop:
         return None
+    where = (f"the residual of the other stages than {', '.join(declined)} (whose winner "
+             "a reality outside the catalogue matched)" if declined else "the residual")
     return (f"best candidate {best.key} removes {100 * best.relative_gain:.1f} % of the "
             f"{best.stage} cost (ΔAIC {best.aic_delta:.0f}); the margin is "
             f"{100 * min_gain:.0f} % and ΔAIC ≤ −{min_aic_drop:.0f}"
-            ": the residual is at the noise floor of the catalogue")
+            f": {where} is at the noise floor of the catalogue")
 
 
 def akaike_weight(best: CandidateScore, scores: list[CandidateScore]) -> float:

@@ -104,7 +104,12 @@ class DiscoveryResult:
 
     def summary(self) -> str:
         lines = [f"discovery on '{self.campaign}' in {self.wall_s:.1f} s"]
-        if not self.findings:
+        declined = [g["key"] for r in self.rounds for g in r.get("rival_declined", [])]
+        if not self.findings and declined:
+            lines.append(f"  no finding: {', '.join(declined)} matched as well by a reality "
+                         "outside the catalogue (a sensor, a drift, the stated values): "
+                         "see discovery.md")
+        elif not self.findings:
             lines.append("  no finding: the base model explains the identification tests down "
                          "to the noise floor")
         for f in self.findings:

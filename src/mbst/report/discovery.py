@@ -176,6 +176,11 @@ def markdown_summary(result: DiscoveryResult) -> str:
                          f"{f.confidence:.2f} |")
         lines += [""] + [f"- **{f.effect} / {_where(f)}**: {f.evidence}"
                          for f in result.findings]
+    elif any(r.get("rival_declined") for r in result.rounds):
+        lines.append("No finding: no catalogue effect is named. What a stage's winner "
+                     "took was matched as well by a reality outside the catalogue (a sensor, "
+                     "a drift or the stated values: below), so the base model is not at the "
+                     "noise floor there.")
     else:
         lines.append("No finding: the base model explains the identification tests down to "
                      "the noise floor of the catalogue" + (

@@ -86,7 +86,8 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     scorer = scorers[best.stage]
     drop = aic_drop(state, best.k_effect)
     rec["aic_drop_needed"] = round(drop, 2)
-    short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop)
+    declined = tuple(dict.fromkeys(g["stage"] for g in rec.get("rival_declined", [])))
+    short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop, declined)
     if short is not None:
         rec["reason"] = short
         return None
