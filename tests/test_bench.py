@@ -227,6 +227,32 @@ def test_cli_rejects_bad_effect(fast_demo, tmp_path, capsys, bad):
     assert not out.exists()  # validated before anything is written
 
 
+def test_a_random_input_is_band_limited_seeded_and_a_campaign(tmp_path):
+    """campaign-format.md lists ``random`` among the input kinds and the bench refused it,
+    so a campaign with such tests could not be re-run (``--tests-from``). A band-limited
+    random input: the same entry gives the same angle, its peak is the amplitude, its power
+    lies in the band, and a campaign of it reads back."""
+    spec = {"kind": "random", "amplitude_deg": 30, "f0_hz": 0.05, "f1_hz": 0.6,
+            "duration_s": 20, "seed": 3}
+    t, ang = bench.input_profile(spec, 1000.0)
+    assert np.array_equal(ang, bench.input_profile(dict(spec), 1000.0)[1])
+    assert not np.array_equal(ang, bench.input_profile({**spec, "seed": 4}, 1000.0)[1])
+    assert np.degrees(np.abs(ang).max()) == pytest.approx(30.0)
+    assert ang[0] == 0.0 and ang[-1] == 0.0 and t[-1] == pytest.approx(21.0, abs=2e-3)
+    power = np.abs(np.fft.rfft(ang)) ** 2
+    freq = np.fft.rfftfreq(len(ang), 1e-3)
+    assert power[freq > 0.7].sum() < 1e-3 * power.sum()
+    with pytest.raises(ValueError, match="f0_hz <= f1_hz"):
+        bench.input_profile({**spec, "f0_hz": 1.0}, 1000.0)
+    plan = [PlannedTest("ft_random", "free_tie_rods", spec),
+            PlannedTest("bc_sine", "blocked_column",
+                        {"kind": "sine", "amplitude_deg": 5, "frequency_hz": 1.0, "cycles": 2})]
+    camp = read_campaign(run_bench(tmp_path, BenchRecipe(effects=[], plan=plan)))
+    assert camp.tests[0].input["kind"] == "random"
+    measured = camp.frame("ft_random")["steering_angle_rad"].to_numpy()
+    assert np.degrees(np.abs(measured).max()) == pytest.approx(30.0, abs=0.5)
+
+
 def test_a_rig_that_diverges_writes_no_campaign_and_says_where(tmp_path, capsys):
     """An HPS curve (gain c1·e^|T|) past a torsion-bar stop makes the powered loop unstable
     and the model has no motor torque limit: the bench wrote a campaign of NaNs, which

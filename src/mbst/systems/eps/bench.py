@@ -247,6 +247,10 @@ PLANS = {"demo": demo_plan, "compact": compact_plan, "assist": assist_plan,
          "compact-assist": compact_assist_plan}
 
 
+# sines summed in a ``random`` input (``_random_input``)
+RANDOM_COMPONENTS = 12
+
+
 def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Time and steering angle (rad) of an input profile, starting and ending at rest."""
     kind = spec["kind"]
@@ -286,9 +290,32 @@ def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
         t = np.arange(0.0, lead + dur, 1.0 / sample_rate_hz)
         rise = float(spec.get("rise_s", 0.05))
         ang = a * np.clip((t - lead) / rise, 0.0, 1.0)
+    elif kind == "random":
+        t, ang = _random_input(spec, a, lead, sample_rate_hz)
     else:
         raise ValueError(f"the bench cannot generate input kind '{kind}'")
     return t, ang
+
+
+def _random_input(spec: dict, a: float, lead: float, sample_rate_hz: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A band-limited random steering input: ``RANDOM_COMPONENTS`` sines spread evenly over
+    ``f0_hz``–``f1_hz`` at 1/f amplitudes and phases drawn from the entry's ``seed``, faded
+    in and out over a second, peaking at the amplitude. Reversals at every size and speed
+    the band holds, where a sine has one of each."""
+    f0, f1 = float(spec.get("f0_hz", 0.05)), float(spec.get("f1_hz", 1.0))
+    dur = float(spec.get("duration_s", 20.0))
+    if not 0 < f0 <= f1:
+        raise ValueError(f"a random input needs 0 < f0_hz <= f1_hz (got {f0}, {f1})")
+    phases = np.random.default_rng(int(spec.get("seed", 0))).uniform(
+        0.0, 2 * np.pi, RANDOM_COMPONENTS)
+    t = np.arange(0.0, lead + dur + lead, 1.0 / sample_rate_hz)
+    tm = np.clip(t - lead, 0.0, dur)
+    freqs = np.linspace(f0, f1, RANDOM_COMPONENTS)
+    ang = sum(f0 / f * np.sin(2 * np.pi * f * tm + ph) for f, ph in zip(freqs, phases))
+    ang = ang * np.clip(np.minimum(tm, dur - tm) / min(1.0, dur / 4), 0.0, 1.0)
+    peak = float(np.max(np.abs(ang)))
+    return t, (a / peak * ang if peak > 0 else ang)
 
 
 def parse_effect_given(text: str) -> tuple[str, dict[str, float]]:
