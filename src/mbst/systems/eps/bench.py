@@ -505,9 +505,10 @@ def _check_finite(spec: TestSpec, t: np.ndarray, sim: dict[str, np.ndarray]) -> 
     """Refuse a test whose simulated rig diverged: no campaign of NaNs is written.
 
     The model has no motor torque limit, so where the rig itself is unstable its signals
-    grow without bound: an HPS curve's gain c1·e^|T| past a torsion-bar stop, fed back
-    from the torsion bar to the motor through the compliant worm gear (finer integration
-    does not help: the divergence comes at the same instant at 1–32× the sub-steps).
+    grow without bound: an HPS curve's gain c1·e^|T| past a torsion-bar stop (the
+    divergence comes at the same instant at 1–32× the sub-steps, so it is the rig's, not
+    the integration's; most likely the assist's gain, fed back from the torsion bar to the
+    motor through the compliant worm gear).
     """
     first = {ch: int(np.argmin(np.isfinite(v))) for ch, v in sim.items()
              if not np.all(np.isfinite(v))}
