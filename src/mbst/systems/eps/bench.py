@@ -283,8 +283,7 @@ def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
         t = np.arange(0.0, lead + dur + lead, 1.0 / sample_rate_hz)
         tm = np.clip(t - lead, 0.0, dur)
         phase = 2 * np.pi * (f0 * tm + 0.5 * (f1 - f0) / dur * tm**2)
-        taper = np.clip(np.minimum(tm, dur - tm) / min(1.0, dur / 4), 0, 1)
-        ang = a * taper * np.sin(phase)
+        ang = a * _fade(tm, dur) * np.sin(phase)
     elif kind == "step":
         dur = float(spec.get("duration_s", 6.0))
         t = np.arange(0.0, lead + dur, 1.0 / sample_rate_hz)
@@ -295,6 +294,11 @@ def input_profile(spec: dict, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
     else:
         raise ValueError(f"the bench cannot generate input kind '{kind}'")
     return t, ang
+
+
+def _fade(tm: np.ndarray, dur: float) -> np.ndarray:
+    """A linear fade in and out over a second (a quarter of a shorter input)."""
+    return np.clip(np.minimum(tm, dur - tm) / min(1.0, dur / 4), 0.0, 1.0)
 
 
 def _random_input(spec: dict, a: float, lead: float, sample_rate_hz: float
@@ -313,7 +317,7 @@ def _random_input(spec: dict, a: float, lead: float, sample_rate_hz: float
     tm = np.clip(t - lead, 0.0, dur)
     freqs = np.linspace(f0, f1, RANDOM_COMPONENTS)
     ang = sum(f0 / f * np.sin(2 * np.pi * f * tm + ph) for f, ph in zip(freqs, phases))
-    ang = ang * np.clip(np.minimum(tm, dur - tm) / min(1.0, dur / 4), 0.0, 1.0)
+    ang = ang * _fade(tm, dur)
     peak = float(np.max(np.abs(ang)))
     return t, (a / peak * ang if peak > 0 else ang)
 
@@ -515,14 +519,14 @@ def _check_finite(spec: TestSpec, t: np.ndarray, sim: dict[str, np.ndarray]) -> 
     if not first:
         return
     ch = min(first, key=first.get)
-    hint = (" A powered test: the assist's gain fed back through the worm gear makes the "
-            "loop unstable where the torque grows (the model has no motor torque limit); "
+    hint = (" A powered test: the assist's gain fed back through the worm gear can make "
+            "the loop unstable where the torque grows (the model has no motor torque limit); "
             "try the eps characteristic, a smaller effect or a passive plan."
             if spec.motor == "assist" else "")
     raise ValueError(
         f"test '{spec.id}' ({spec.scenario}): the simulated rig diverged at "
-        f"t = {t[first[ch]]:.3f} s ({ch.removeprefix('internal.')} is not finite from "
-        f"sample {first[ch]} on); no campaign was written.{hint}")
+        f"t = {t[first[ch]]:.3f} s ({ch.removeprefix('internal.')} first not finite at "
+        f"sample {first[ch]}); no campaign was written.{hint}")
 
 
 def _channels_for(scenario: str, sensors: tuple[str, ...]) -> list[str]:
