@@ -118,7 +118,11 @@ def test_each_powered_test_runs_on_its_own_curve_and_damping(clean_assist):
     assert model.stages_of(off) == ("tires_on_ground", "assist_characteristic")
 
 
-def test_bad_assist_entries_are_named(clean_assist, tmp_path):
+def test_bad_assist_entries_are_named(clean_assist, tmp_path, capsys):
+    """... by `mbst check` too: it passed them, and identification refused them (found
+    2026-11-28)."""
+    from mbst.cli import main
+
     camp, _ = clean_assist
     doc = yaml.safe_load((camp.path / "campaign.yaml").read_text())
     import shutil
@@ -135,6 +139,8 @@ def test_bad_assist_entries_are_named(clean_assist, tmp_path):
     (tmp_path / "c" / "campaign.yaml").write_text(yaml.safe_dump(bad))
     with pytest.raises(CampaignError, match="assist_characteristic is 'pneumatic'"):
         read_campaign(tmp_path / "c").model()
+    assert main(["check", str(tmp_path / "c")]) == 2
+    assert "assist_characteristic is 'pneumatic'" in capsys.readouterr().err
 
 
 def test_hps_curve_is_identified(tmp_path):

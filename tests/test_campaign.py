@@ -645,6 +645,61 @@ def test_non_finite_required(tmp_path, bad, word):
     assert "test 's2_sine'" in msg and NAME in msg
 
 
+@pytest.mark.parametrize("fill", [1e30, -9.9e37])
+def test_a_loggers_fill_value_is_named_not_read_as_data(tmp_path, fill):
+    """A logger writes 1e30 or 9.9e37 for a missing sample: finite, and a discovery on it
+    ran past ten minutes (found 2026-11-28). It is refused where it sits."""
+    camp = build(tmp_path)
+    col = family().required_channels(make_specs()[1].scenario)[2]
+
+    def corrupt(df):
+        df.loc[41, col] = fill  # data row 42
+        return df
+
+    edit_csv(camp, "s2_sine", corrupt)
+    msg = str(error(camp))
+    assert f"column '{col}'" in msg and "row 42" in msg and "no measurement" in msg
+    assert "test 's2_sine'" in msg
+
+
+def test_a_control_that_reads_an_identification_tests_file_is_refused(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    fitted = next(e for e in doc["tests"] if e["role"] == "identification")
+    control = next(e for e in doc["tests"] if e["role"] == "control")
+    control["file"] = "./" + fitted["file"]  # the same file, written another way
+    save_yaml(camp, doc)
+    msg = str(error(camp))
+    assert f"test '{control['id']}'" in msg and f"identification test '{fitted['id']}'" in msg
+
+
+@pytest.mark.parametrize(("key", "value", "words"), [
+    ("pinion_radius_m", 0.0, "must be > 0"),
+    ("wheel_mass_kg", -80.0, "must be > 0"),
+    ("torsion_bar.stiffness_nm_per_rad", -80.0, "must be > 0"),
+    ("column_inertia_kgm2", 2.1, "a unit slip?"),  # g·m² written as kg·m²
+    ("pinion_radius_m", 7.5e-6, "a unit slip?"),
+])
+def test_a_known_value_no_rig_has_is_refused_naming_it(tmp_path, key, value, words):
+    """Found 2026-11-28: a zero pinion radius and a negative torsion-bar stiffness passed
+    `mbst check` and ended identification in a bare traceback; a 1e30 inertia fitted to a
+    control FIT of −1398 % without a word."""
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["known"][key] = value
+    save_yaml(camp, doc)
+    msg = str(error(camp))
+    assert f"known value '{key}'" in msg and words in msg and "range" in msg
+
+
+def test_a_known_value_at_the_edge_of_a_real_rig_is_read(tmp_path):
+    camp = build(tmp_path)
+    doc = load_yaml(camp)
+    doc["known"].update(pinion_radius_m=0.012, wheel_mass_kg=400.0)  # a truck's rig
+    save_yaml(camp, doc)
+    assert read_campaign(camp).known["wheel_mass_kg"] == 400.0
+
+
 def test_empty_cell_is_nan(tmp_path):
     camp = build(tmp_path)
     path = camp / "tests" / "s1_sine.csv"
@@ -738,3 +793,25 @@ def test_exactly_min_samples_ok(tmp_path):
     camp = build(tmp_path)
     edit_csv(camp, "s3_ctrl", lambda df: df.iloc[:100])
     assert len(read_campaign(camp).frame("s3_ctrl")) == 100
+
+
+# --------------------------------------------------------------------------- output folders
+@pytest.mark.parametrize("command", ["identify", "discover", "preprocess"])
+def test_an_output_folder_that_would_replace_the_campaign_is_refused_before_the_work(
+        tmp_path, capsys, command):
+    """Found 2026-11-28: `mbst identify CAMP --out CAMP` fitted, then replaced the campaign
+    with its results (exit 0); `--out` on a file replaced the file; an unwritable `--out`
+    ended a 26 s fit in a traceback. Each is refused before any fit, nothing touched."""
+    from mbst.cli import main
+
+    camp = build(tmp_path)
+    before = sorted(p.name for p in camp.rglob("*"))
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("keep me")
+    for out, words in [(camp, "holds the input"), (tmp_path, "holds the input"),
+                       (a_file, "is a file"), (a_file / "sub", "cannot create it")]:
+        assert main([command, str(camp), "--out", str(out), "--quiet"]) == 2, out
+        err = capsys.readouterr().err
+        assert f"--out {out}" in err and words in err and "Traceback" not in err, err
+    assert sorted(p.name for p in camp.rglob("*")) == before
+    assert a_file.read_text() == "keep me"

@@ -23,6 +23,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     from mbst.io.campaign import read_campaign, summarize_campaign
 
     camp = read_campaign(args.campaign)
+    camp.model()  # the family's reading of it (assist curves, speeds), as identify reads it
     print(summarize_campaign(camp))
     print(f"ok: campaign '{camp.name}' is valid")
     return 0
@@ -87,6 +88,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     camp = read_campaign(args.campaign)
     if args.tau < 0:
         raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
+    _check_out(args.out, camp.path)
     out = write_preprocessed(camp, args.out, args.tau)
     if not args.quiet:
         print(f"wrote {out}: filtered campaign, noise table, figure (τ = {args.tau * 1e3:g} ms)")
@@ -105,6 +107,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
     settings = IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
                                 joint_refinement=args.joint, progress=not args.quiet)
+    _check_out(args.out, camp.path)
     result = run_identify(camp, args.out, settings)
     if not args.quiet:
         print(result.summary())
@@ -133,10 +136,20 @@ def _cmd_discover(args: argparse.Namespace) -> int:
         stick_slip=not args.no_stick_slip, equation_error=not args.no_equation_error,
         progress=not args.quiet,
     )
+    _check_out(args.out, camp.path)
     result = run_discover(camp, args.out, settings, _read_base_fit(args.base_fit))
     if not args.quiet:
         print(result.summary())
     return 0
+
+
+def _check_out(out: str, campaign_dir: str | Path | None) -> None:
+    """Refuse an output folder the results cannot replace safely, before the work starts."""
+    from mbst.io.outputs import output_dir_problem
+
+    problem = output_dir_problem(out, campaign_dir)
+    if problem:
+        raise UsageError(problem)
 
 
 def _read_base_fit(path: str | None) -> dict | None:
@@ -160,6 +173,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         cfg = load_plan(args.plan)
     except PlanError as exc:
         raise UsageError(str(exc)) from None
+    _check_out(args.out, args.plan)
     proof = False if args.no_proof else (True if args.proof else None)
     result = run_plan(cfg, args.out, progress=not args.quiet, proof=proof)
     if not args.quiet:
@@ -176,6 +190,7 @@ def _cmd_resolve(args: argparse.Namespace) -> int:
     if args.plan:
         raise UsageError("--resolve designs from the discovery record and its campaign; "
                          "leave out the planning config")
+    _check_out(args.out, args.resolve)
     try:
         result = resolve(args.resolve, targets=args.target, campaign_dir=args.campaign,
                          budget_share=args.budget_share, seed=args.seed)
@@ -429,6 +444,9 @@ def main(argv: list[str] | None = None) -> int:
         # or was only printed; quiet, as a Unix filter ends
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as exc:  # a disk full or a folder that went away: said, not a traceback
+        print(f"mbst {args.command}: error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

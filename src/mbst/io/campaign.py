@@ -356,6 +356,7 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
     family = get_system(system)
 
     known, priors = _parse_known(doc.get("known"), fail)
+    _check_known_ranges(known, family, fail)
 
     raw_tests = doc["tests"]
     if not isinstance(raw_tests, list):
@@ -388,6 +389,7 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
             )
         tests.append(spec)
 
+    _check_controls_held_out(tests, yaml_path.parent, name)
     extra = {k: v for k, v in doc.items() if k not in _TOP_KEYS}
     return Campaign(
         path=yaml_path.parent,
@@ -398,6 +400,23 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
         extra=extra,
         priors=priors,
     )
+
+
+# A magnitude no rig's channel reaches in SI units; loggers write 1e30, 9.9e37 (NI) or
+# FLT_MAX for a missing sample, which would pass as finite data.
+FILL_VALUE = 1e15
+
+
+def _check_controls_held_out(tests: list[TestSpec], root: Path, campaign: str) -> None:
+    """A control test that reads an identification test's file is not held out."""
+    fitted = {(root / t.file).resolve(): t.id for t in tests if t.role == "identification"}
+    for t in tests:
+        other = fitted.get((root / t.file).resolve()) if t.role == "control" else None
+        if other is not None:
+            raise CampaignError(
+                f"control test reads the file of identification test '{other}' "
+                f"(file: {t.file}); a control must be data the fit never sees",
+                campaign=campaign, test=t.id, path=root / t.file)
 
 
 def _known_number(value: Any, what: str, fail) -> float:
@@ -435,6 +454,34 @@ def _parse_known(raw: Any, fail) -> tuple[dict[str, float], dict[str, float]]:
             raise fail(f"known prior '{key}': value is 0; a prior needs a non-zero centre")
         priors[key] = sigma
     return known, priors
+
+
+# A stated value this far outside the range the model takes for its parameter is a unit
+# slip (mm written as m, g as kg), not a rig: 100x is beyond any rig of the family.
+KNOWN_RANGE_FACTOR = 100.0
+
+
+def _check_known_ranges(known: dict[str, float], family: SystemFamily, fail) -> None:
+    """Refuse a stated value no rig can have: below zero (or at zero) for a quantity that
+    is positive by nature, or a unit slip outside the model's range for it. Names that
+    are no parameter of the model are left to identification (it says they are unused)."""
+    try:
+        model = family.model()
+    except KeyError:
+        return
+    for key, value in known.items():
+        if key not in model.param_index:
+            continue
+        spec = model.spec(key)
+        span = f"the model's range for it is {spec.lower:g} to {spec.upper:g} {spec.unit}"
+        if spec.lower > 0.0 and value <= 0.0 or spec.lower >= 0.0 and value < 0.0:
+            sign = "> 0" if spec.lower > 0.0 else "≥ 0"
+            raise fail(f"known value '{key}' is {value:g} {spec.unit}; it must be {sign} "
+                       f"({span})")
+        if (spec.upper > 0.0 and value > KNOWN_RANGE_FACTOR * spec.upper
+                or spec.lower > 0.0 and value < spec.lower / KNOWN_RANGE_FACTOR):
+            raise fail(f"known value '{key}' is {value:g} {spec.unit}, more than "
+                       f"{KNOWN_RANGE_FACTOR:g}x outside what a rig has ({span}); a unit slip?")
 
 
 def _parse_test(entry: Any, index: int, family: SystemFamily, fail) -> TestSpec:
@@ -569,6 +616,11 @@ def _load_test_data(
             i = int(bad[0])
             what = "NaN" if np.isnan(values[i]) else ("inf" if values[i] > 0 else "-inf")
             raise fail(f"value is {what}", column=col, row=i + 1)
+        bad = np.flatnonzero(np.abs(values) >= FILL_VALUE)
+        if bad.size:
+            i = int(bad[0])
+            raise fail(f"value {values[i]:.6g} is no measurement (a logger's fill value for "
+                       "a missing sample?)", column=col, row=i + 1)
 
     time_col = family.time_channel
     t = df[time_col].to_numpy(dtype=float)

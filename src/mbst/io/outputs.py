@@ -91,6 +91,32 @@ def write_markdown(path: str | Path, text: str) -> Path:
     return path
 
 
+def output_dir_problem(out_dir: str | Path, keep: str | Path | None = None) -> str | None:
+    """Why ``out_dir`` cannot take a command's results, before any work is done, or None.
+
+    The results replace ``out_dir`` whole, so it must not be (or hold) ``keep``, the
+    input the command reads (e.g. the campaign), nor an existing file; and its nearest
+    existing parent must be a folder this user can write in.
+    """
+    out = Path(out_dir).absolute()
+    if out.exists() and not out.is_dir():
+        return f"--out {out_dir}: is a file, not a folder; results would replace it"
+    if keep is not None:
+        kept = Path(keep).absolute()
+        if out.resolve() == kept.resolve() or out.resolve() in kept.resolve().parents:
+            return (f"--out {out_dir}: the results replace this folder whole, and it holds "
+                    f"the input {keep}; choose another folder")
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    try:  # a real probe: permissions alone do not say it (root, read-only or virtual file systems)
+        probe = tempfile.mkdtemp(prefix=".mbst-probe-", dir=parent)
+        os.rmdir(probe)
+    except OSError as exc:
+        return f"--out {out_dir}: cannot create it under {parent} ({exc.strerror or exc})"
+    return None
+
+
 @contextmanager
 def atomic_output_dir(out_dir: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling folder; on success it replaces ``out_dir`` whole."""
