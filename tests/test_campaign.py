@@ -353,6 +353,34 @@ def test_summary_warns_of_a_test_whose_input_barely_moves(tmp_path):
     assert "WARNING: test 's2_sine'" in text and "4.0×" in text
     assert "WARNING: test 's1_sine'" not in text
 
+
+
+def test_a_single_sample_glitch_is_named_and_a_step_is_not(tmp_path):
+    """One 100 rad sample in a ±0.5 rad angle passed `mbst check` and took the control
+    torque FIT from 85 to 29 % without a word (found 2026-11-28). `check` and
+    identification's warnings now name it; a step of the input, as large, is no glitch."""
+    from mbst.identify.cascade import prepare_campaign
+
+    camp = build(tmp_path)
+
+    def glitch(df):
+        df.loc[99, "steering_angle_rad"] = 100.0  # data row 100
+        return df
+
+    def step(df):
+        df.loc[100:, "steering_angle_rad"] += 100.0
+        return df
+
+    edit_csv(camp, "s2_sine", glitch)
+    edit_csv(camp, "s1_sine", step)
+    text = summarize_campaign(read_campaign(camp))
+    said = [ln for ln in text.splitlines() if "far off its neighbours" in ln]
+    assert len(said) == 1, said
+    assert "test 's2_sine'" in said[0] and "'steering_angle_rad', row 100" in said[0]
+    _, warnings = prepare_campaign(read_campaign(camp), 0.005)
+    assert [w for w in warnings if "far off" in w] == [said[0].removeprefix("WARNING: ")]
+
+
 # --------------------------------------------------------------------------- campaign.yaml errors
 
 

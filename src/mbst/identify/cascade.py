@@ -37,7 +37,7 @@ from mbst.identify.priors import (
     known_notes,
     prior_stages,
 )
-from mbst.io.campaign import Campaign, CampaignError
+from mbst.io.campaign import Campaign, CampaignError, spike_warnings
 
 
 @dataclass
@@ -141,6 +141,10 @@ def prepare_campaign(campaign: Campaign, tau_s: float
     warnings = []
     prepared = {s.id: prepare_test(campaign, s, tau_s) for s in campaign.tests}
     for pt in prepared.values():
+        df = campaign.frame(pt.id)  # every logged channel of the family, the input's too
+        logged = [ch.name for ch in campaign.family.channels if ch.name in df.columns
+                  and ch.name != campaign.family.time_channel]
+        warnings += spike_warnings(pt.id, {c: df[c].to_numpy(dtype=float) for c in logged})
         for ch in _flatline_channels(pt):
             warnings.append(f"test '{pt.id}': channel '{ch}' is flat-lined; it is not used")
             pt.measured.pop(ch, None)

@@ -840,6 +840,40 @@ def _barely_moves(x: np.ndarray, dt_s: float) -> str:
         return f"range {span:.3g}, {span / res:.1f}× its noise or quantum"
     return ""
 
+# An isolated sample whose jump off its neighbours' mean is this many times the channel's
+# 90th-percentile jump (a level a few glitches, each three jumps wide, cannot move), while
+# the neighbours agree with each other (no step), is a glitch.
+SPIKE_FACTOR = 1000.0
+
+
+def isolated_spikes(x: np.ndarray) -> list[int]:
+    """Rows (0-based) of single samples far off both neighbours: a sensor or logger glitch
+    that a fit would chase. A step is no spike (its neighbours differ by the jump)."""
+    x = np.asarray(x, dtype=float)
+    if x.size < 5:
+        return []
+    jump = np.abs(x[1:-1] - 0.5 * (x[:-2] + x[2:]))
+    scale = float(np.percentile(jump, 90.0))
+    if scale <= 0.0:
+        return []
+    sides = np.abs(x[2:] - x[:-2])
+    return [int(i) + 1 for i in np.flatnonzero((jump > SPIKE_FACTOR * scale)
+                                               & (jump > 10.0 * sides))]
+
+
+def spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
+    """One line per channel that holds isolated spikes, naming the first's row."""
+    out = []
+    for ch, x in channels.items():
+        rows = isolated_spikes(x)
+        if rows:
+            more = f" (and {len(rows) - 1} more)" if len(rows) > 1 else ""
+            out.append(f"test '{test_id}': channel '{ch}', row {rows[0] + 1}: value "
+                       f"{x[rows[0]]:.6g} is a single sample far off its neighbours{more}; "
+                       "a glitch the fit will chase")
+    return out
+
+
 def summarize_campaign(campaign: Campaign) -> str:
     """Human-readable overview for ``mbst check``.
 
@@ -906,6 +940,8 @@ def summarize_campaign(campaign: Campaign) -> str:
         other = [c for c in df.columns if c not in channel_names]
         if other:
             extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
+        extras += [f"WARNING: {w}" for w in spike_warnings(
+            spec.id, {c: df[c].to_numpy(dtype=float) for c in channels})]
         still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
         if still:
             extras.append(f"WARNING: test '{spec.id}': its input {family.input_channel} "
