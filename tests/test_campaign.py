@@ -397,6 +397,18 @@ def test_missing_directory(tmp_path):
     assert "nowhere" in str(err)
 
 
+def test_a_key_given_twice_is_refused_with_its_line(tmp_path):
+    """PyYAML keeps the last of two equal keys: a control test's second `role:` line made it
+    an identification test without a word (found 2026-11-28)."""
+    camp = build(tmp_path)
+    lines = (camp / "campaign.yaml").read_text().splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.strip() == "role: control")
+    lines.insert(at + 1, lines[at].replace("control", "identification"))
+    (camp / "campaign.yaml").write_text("\n".join(lines) + "\n")
+    msg = str(error(camp))
+    assert "key 'role' is given twice" in msg and f"line {at + 2}" in msg
+
+
 def test_yaml_does_not_parse(tmp_path):
     camp = build(tmp_path)
     text = (camp / "campaign.yaml").read_text().splitlines()
