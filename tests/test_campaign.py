@@ -740,6 +740,28 @@ def test_a_known_value_at_the_edge_of_a_real_rig_is_read(tmp_path):
     assert read_campaign(camp).known["wheel_mass_kg"] == 400.0
 
 
+@pytest.mark.parametrize(("edit", "words"), [
+    (lambda lines: lines.__setitem__(42, lines[42] + ",5,6"), "row 42: 5 fields where the header has 3"),
+    (lambda lines: lines.__setitem__(42, lines[42].replace(",", ",\udcb0", 1)),
+     "row 42: not UTF-8 text (byte 0xb0)"),
+    (lambda lines: lines.__setitem__(0, lines[0].replace("steering_angle_rad",
+                                                         "steering_angle_rad,steering_torque_nm")
+                                     + ",x"),
+     "column 'steering_torque_nm': column given twice"),
+])
+def test_a_malformed_csv_line_is_named_by_its_row_or_column(tmp_path, edit, words):
+    """A long row, a Latin-1 byte and a column named twice passed through pandas' own text
+    without a row or column, or not at all (found 2026-11-28)."""
+    camp = build(tmp_path)
+    path = camp / "tests" / "s1_sine.csv"
+    lines = path.read_text().splitlines()
+    assert len(lines[0].split(",")) == 3  # time, angle, torque: a blocked-column test
+    edit(lines)
+    path.write_bytes(("\n".join(lines) + "\n").encode("utf-8", "surrogateescape"))
+    msg = str(error(camp))
+    assert "test 's1_sine'" in msg and words in msg, msg
+
+
 def test_empty_cell_is_nan(tmp_path):
     camp = build(tmp_path)
     path = camp / "tests" / "s1_sine.csv"

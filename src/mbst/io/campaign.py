@@ -14,8 +14,10 @@ is the first line after the CSV header (the first row of a Parquet table).
 
 from __future__ import annotations
 
+import csv
 import math
 import os
+import re
 import shutil
 import uuid
 from collections import Counter
@@ -422,6 +424,26 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
 FILL_VALUE = 1e15
 
 
+def _not_utf8(file_path: Path, fail) -> CampaignError:
+    """Where a CSV file stops being UTF-8 (pandas says neither the row nor the byte)."""
+    raw = file_path.read_bytes()
+    try:
+        raw.decode("utf-8")
+        return fail("not UTF-8 text; save the file as UTF-8 or plain ASCII")
+    except UnicodeDecodeError as bad:
+        line = raw[:bad.start].count(b"\n")  # line 0 is the header, line k data row k
+        what = f"not UTF-8 text (byte 0x{raw[bad.start]:02x}); save the file as UTF-8 or ASCII"
+        return fail(what, row=line) if line else fail(what + " (in the header line)")
+
+
+def _header_names(file_path: Path, suffix: str) -> list[str]:
+    """The header's names as written (pandas renames a repeated one to ``name.1``)."""
+    if suffix != ".csv":
+        return []
+    with open(file_path, encoding="utf-8", errors="replace") as fh:
+        return [c.strip() for c in next(csv.reader(fh), [])]
+
+
 def _check_controls_held_out(tests: list[TestSpec], root: Path, campaign: str) -> None:
     """A control test that reads an identification test's file is not held out."""
     fitted = {(root / t.file).resolve(): t.id for t in tests if t.role == "identification"}
@@ -596,11 +618,24 @@ def _load_test_data(
             df = pd.read_parquet(file_path)
     except pd.errors.EmptyDataError as exc:
         raise fail("file is empty (no header line)") from exc
+    except pd.errors.ParserError as exc:  # "Expected 4 fields in line 1501, saw 5"
+        found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
+        if not found:
+            raise fail(f"cannot read csv file: {exc}") from exc
+        want, line, got = (int(g) for g in found.groups())
+        raise fail(f"{got} fields where the header has {want}", row=line - 1) from exc
+    except UnicodeDecodeError as exc:
+        raise _not_utf8(file_path, fail) from exc
     except Exception as exc:
         raise fail(f"cannot read {suffix[1:]} file: {type(exc).__name__}: {exc}") from exc
 
     # "time_s, steering_angle_rad" (a space after each comma, as some exports write it)
     df.columns = [str(c).strip() for c in df.columns]
+    names = _header_names(file_path, suffix)
+    twice = sorted({c for c in names if names.count(c) > 1})
+    if twice:
+        raise fail("column given twice in the header; which one is meant is not known",
+                   column=twice[0])
     present = [ch.name for ch in family.channels if ch.name in df.columns]
 
     # Known channels must be numeric; name the first cell that is not.
