@@ -741,7 +741,8 @@ def test_a_known_value_at_the_edge_of_a_real_rig_is_read(tmp_path):
 
 
 @pytest.mark.parametrize(("edit", "words"), [
-    (lambda lines: lines.__setitem__(42, lines[42] + ",5,6"), "row 42: 5 fields where the header has 3"),
+    (lambda lines: lines.__setitem__(42, lines[42] + ",5,6"),
+     "row 42: 5 fields where the header has 3"),
     (lambda lines: lines.__setitem__(42, lines[42].replace(",", ",\udcb0", 1)),
      "row 42: not UTF-8 text (byte 0xb0)"),
     (lambda lines: lines.__setitem__(0, lines[0].replace("steering_angle_rad",
