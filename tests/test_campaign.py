@@ -355,6 +355,25 @@ def test_summary_warns_of_a_test_whose_input_barely_moves(tmp_path):
 
 
 
+def test_a_time_column_in_milliseconds_is_said(tmp_path):
+    """A test logged at 500 Hz with its time in ms reads as 0.5 Hz and 1000x as long:
+    `mbst check` passed it and identification was still fitting after 10 minutes (found
+    2026-11-28). Both now say so; the other tests stay quiet."""
+    from mbst.identify.cascade import prepare_campaign
+
+    camp = build(tmp_path)
+
+    def in_ms(df):
+        df["time_s"] *= 1000.0
+        return df
+
+    edit_csv(camp, "s2_sine", in_ms)
+    said = [ln for ln in summarize_campaign(read_campaign(camp)).splitlines() if "too slow" in ln]
+    assert len(said) == 1 and "test 's2_sine'" in said[0] and "in seconds" in said[0], said
+    _, warnings = prepare_campaign(read_campaign(camp), 0.005)
+    assert [w for w in warnings if "too slow" in w] == [said[0].removeprefix("WARNING: ")]
+
+
 def test_a_single_sample_glitch_is_named_and_a_step_is_not(tmp_path):
     """One 100 rad sample in a ±0.5 rad angle passed `mbst check` and took the control
     torque FIT from 85 to 29 % without a word (found 2026-11-28). `check` and

@@ -135,7 +135,9 @@ class DiscoveryResult:
             lines.append(f"  no test where they act: {', '.join(untested)}")
         means = self.comparison.groupby("model", sort=False)["fit_percent"].mean()
         for m, v in means.items():
-            lines.append(f"  control FIT mean {m:<9} {v:6.1f} %")
+            value = (f"{v:6.1f} %" if np.isfinite(v)
+                     else "     – (no control it could simulate; discovery.md)")
+            lines.append(f"  control FIT mean {m:<9} {value}")
         for key, pub in (self.benchmark or {}).get("published", {}).items():
             lines.append(f"  {key:<40} ours {self.benchmark.get(key, float('nan')):9.4g}  "
                          f"published {pub['value']:.4g} ({pub['model']})")

@@ -924,6 +924,20 @@ def spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
     return out
 
 
+# Below this sample rate no rig dynamics these models hold is seen; a time column in ms
+# read as s lands here (500 Hz logged → 0.5 Hz read), and a fit on it runs for hours.
+MIN_PLAUSIBLE_RATE_HZ = 20.0
+
+
+def slow_rate_warning(test_id: str, dt_s: float, time_channel: str) -> list[str]:
+    """A line when a test's sample rate is too slow for any dynamics: time in ms?"""
+    if dt_s <= 1.0 / MIN_PLAUSIBLE_RATE_HZ:
+        return []
+    return [f"test '{test_id}': sample rate {1.0 / dt_s:.3g} Hz, too slow for the rig's "
+            f"dynamics; is {time_channel} in seconds (milliseconds read as seconds slow a "
+            "log 1000x)?"]
+
+
 def summarize_campaign(campaign: Campaign) -> str:
     """Human-readable overview for ``mbst check``.
 
@@ -990,6 +1004,7 @@ def summarize_campaign(campaign: Campaign) -> str:
         other = [c for c in df.columns if c not in channel_names]
         if other:
             extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
+        extras += [f"WARNING: {w}" for w in slow_rate_warning(spec.id, dt, family.time_channel)]
         extras += [f"WARNING: {w}" for w in spike_warnings(
             spec.id, {c: df[c].to_numpy(dtype=float) for c in channels})]
         still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
