@@ -267,6 +267,16 @@ def test_write_failure_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("bad", ["../s2/ramp", ".hidden", "a:b"])
+def test_read_rejects_a_path_like_id(tmp_path, bad):
+    """The id names the test's outputs: `check` and `identify` passed '../s2/ramp' and only
+    `preprocess` refused it (found 2026-11-28)."""
+    camp = build(tmp_path)
+    edit_test(camp, "s1_sine", id=bad)
+    msg = str(error(camp))
+    assert f"test '{bad}'" in msg and "file name" in msg
+
+
 def test_write_rejects_path_like_id(tmp_path):
     spec = make_specs()[0]
     spec.id = "../escape"

@@ -385,6 +385,8 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
     seen: set[str] = set()
     for index, entry in enumerate(raw_tests):
         spec = _parse_test(entry, index, family, fail)
+        # the id names the test's outputs (figures, a preprocessed copy): a file name
+        _check_writable_id(spec.id, name)
         if spec.id in seen:
             raise fail("duplicate test id", test=spec.id)
         seen.add(spec.id)
