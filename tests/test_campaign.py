@@ -384,6 +384,24 @@ def test_a_time_column_in_milliseconds_is_said(tmp_path):
     assert [w for w in warnings if "too slow" in w] == [said[0].removeprefix("WARNING: ")]
 
 
+def test_a_time_step_of_a_nanosecond_and_an_unknown_input_kind_are_said(tmp_path):
+    """A '0.8 Hz sine' lasting 3 µs fitted without a word, and `sawtooth` (no kind of the
+    spec) passed silently (found 2026-11-28); the data is still read."""
+    camp = build(tmp_path)
+
+    def in_ns(df):
+        df["time_s"] *= 1e-6
+        return df
+
+    edit_csv(camp, "s2_sine", in_ns)
+    edit_test(camp, "s1_sine", input={"kind": "sawtooth", "amplitude_deg": 30})
+    warned = [ln for ln in summarize_campaign(read_campaign(camp)).splitlines()
+              if ln.startswith("WARNING")]
+    assert len(warned) == 2, warned
+    assert any("test 's2_sine'" in w and "faster than any rig's logger" in w for w in warned)
+    assert any("test 's1_sine'" in w and "input kind 'sawtooth'" in w for w in warned)
+
+
 def test_a_single_sample_glitch_is_named_and_a_step_is_not(tmp_path):
     """One 100 rad sample in a ±0.5 rad angle passed `mbst check` and took the control
     torque FIT from 85 to 29 % without a word (found 2026-11-28). `check` and

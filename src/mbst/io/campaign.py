@@ -931,13 +931,24 @@ def spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
 MIN_PLAUSIBLE_RATE_HZ = 20.0
 
 
+# ... and above this one no rig's logger runs: a time column in another unit (µs, ns
+# counts scaled wrongly) that makes a test last microseconds.
+MAX_PLAUSIBLE_RATE_HZ = 1e6
+# input kinds of campaign-format.md; another is read (the profile is informative) and said
+INPUT_KINDS = ("sine", "sweep", "ramp", "triangle", "step", "impact", "random", "recorded")
+
+
 def slow_rate_warning(test_id: str, dt_s: float, time_channel: str) -> list[str]:
-    """A line when a test's sample rate is too slow for any dynamics: time in ms?"""
-    if dt_s <= 1.0 / MIN_PLAUSIBLE_RATE_HZ:
-        return []
-    return [f"test '{test_id}': sample rate {1.0 / dt_s:.3g} Hz, too slow for the rig's "
-            f"dynamics; is {time_channel} in seconds (milliseconds read as seconds slow a "
-            "log 1000x)?"]
+    """A line when a test's sample rate is implausible for a rig: time in another unit?"""
+    rate = 1.0 / dt_s
+    if rate < MIN_PLAUSIBLE_RATE_HZ:
+        return [f"test '{test_id}': sample rate {rate:.3g} Hz, too slow for the rig's "
+                f"dynamics; is {time_channel} in seconds (milliseconds read as seconds slow "
+                "a log 1000x)?"]
+    if rate > MAX_PLAUSIBLE_RATE_HZ:
+        return [f"test '{test_id}': sample rate {rate:.3g} Hz, faster than any rig's logger; "
+                f"is {time_channel} in seconds?"]
+    return []
 
 
 def summarize_campaign(campaign: Campaign) -> str:
@@ -1007,6 +1018,10 @@ def summarize_campaign(campaign: Campaign) -> str:
         if other:
             extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
         extras += [f"WARNING: {w}" for w in slow_rate_warning(spec.id, dt, family.time_channel)]
+        if spec.input_kind not in (None, *INPUT_KINDS):
+            extras.append(f"WARNING: test '{spec.id}': input kind '{spec.input_kind}' is none "
+                          f"of {', '.join(INPUT_KINDS)}; the profile is read as informative "
+                          "(the model is driven by the measured angle)")
         extras += [f"WARNING: {w}" for w in spike_warnings(
             spec.id, {c: df[c].to_numpy(dtype=float) for c in channels})]
         still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
