@@ -37,7 +37,7 @@ from mbst.identify.priors import (
     known_notes,
     prior_stages,
 )
-from mbst.io.campaign import Campaign, CampaignError, slow_rate_warning, spike_warnings
+from mbst.io.campaign import Campaign, CampaignError, data_warnings
 
 
 @dataclass
@@ -141,12 +141,7 @@ def prepare_campaign(campaign: Campaign, tau_s: float
     warnings = []
     prepared = {s.id: prepare_test(campaign, s, tau_s) for s in campaign.tests}
     for pt in prepared.values():
-        df = campaign.frame(pt.id)  # every logged channel of the family, the input's too
-        logged = [ch.name for ch in campaign.family.channels if ch.name in df.columns
-                  and ch.name != campaign.family.time_channel]
-        warnings += spike_warnings(pt.id, {c: df[c].to_numpy(dtype=float) for c in logged})
-        warnings += slow_rate_warning(pt.id, campaign.sample_time_s(pt.id),
-                                      campaign.family.time_channel)
+        warnings += data_warnings(campaign, pt.id)
         for ch in _flatline_channels(pt):
             warnings.append(f"test '{pt.id}': channel '{ch}' is flat-lined; it is not used")
             pt.measured.pop(ch, None)

@@ -513,12 +513,12 @@ def _check_known_ranges(known: dict[str, float], family: SystemFamily, fail) -> 
             continue
         spec = model.spec(key)
         span = f"the model's range for it is {spec.lower:g} to {spec.upper:g} {spec.unit}"
-        if spec.lower > 0.0 and value <= 0.0 or spec.lower >= 0.0 and value < 0.0:
+        if (spec.lower > 0.0 and value <= 0.0) or (spec.lower >= 0.0 and value < 0.0):
             sign = "> 0" if spec.lower > 0.0 else "≥ 0"
             raise fail(f"known value '{key}' is {value:g} {spec.unit}; it must be {sign} "
                        f"({span})")
-        if (spec.upper > 0.0 and value > KNOWN_RANGE_FACTOR * spec.upper
-                or spec.lower > 0.0 and value < spec.lower / KNOWN_RANGE_FACTOR):
+        if ((spec.upper > 0.0 and value > KNOWN_RANGE_FACTOR * spec.upper)
+                or (spec.lower > 0.0 and value < spec.lower / KNOWN_RANGE_FACTOR)):
             raise fail(f"known value '{key}' is {value:g} {spec.unit}, more than "
                        f"{KNOWN_RANGE_FACTOR:g}x outside what a rig has ({span}); a unit slip?")
 
@@ -892,10 +892,17 @@ def _barely_moves(x: np.ndarray, dt_s: float) -> str:
         return f"range {span:.3g}, {span / res:.1f}× its noise or quantum"
     return ""
 
+
 # An isolated sample whose jump off its neighbours' mean is this many times the channel's
 # 90th-percentile jump (a level a few glitches, each three jumps wide, cannot move), while
 # the neighbours agree with each other (no step), is a glitch.
 SPIKE_FACTOR = 1000.0
+# Sample rates no rig's log has: below, a time column in ms read as s (500 Hz logged reads
+# as 0.5 Hz, and a fit on it runs for hours); above, one in another unit (µs, ns).
+MIN_PLAUSIBLE_RATE_HZ = 20.0
+MAX_PLAUSIBLE_RATE_HZ = 1e6
+# input kinds of campaign-format.md; another is read (the profile is informative) and said
+INPUT_KINDS = ("sine", "sweep", "ramp", "triangle", "step", "impact", "random", "recorded")
 
 
 def isolated_spikes(x: np.ndarray) -> list[int]:
@@ -913,7 +920,7 @@ def isolated_spikes(x: np.ndarray) -> list[int]:
                                                & (jump > 10.0 * sides))]
 
 
-def spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
+def _spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
     """One line per channel that holds isolated spikes, naming the first's row."""
     out = []
     for ch, x in channels.items():
@@ -926,19 +933,7 @@ def spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
     return out
 
 
-# Below this sample rate no rig dynamics these models hold is seen; a time column in ms
-# read as s lands here (500 Hz logged → 0.5 Hz read), and a fit on it runs for hours.
-MIN_PLAUSIBLE_RATE_HZ = 20.0
-
-
-# ... and above this one no rig's logger runs: a time column in another unit (µs, ns
-# counts scaled wrongly) that makes a test last microseconds.
-MAX_PLAUSIBLE_RATE_HZ = 1e6
-# input kinds of campaign-format.md; another is read (the profile is informative) and said
-INPUT_KINDS = ("sine", "sweep", "ramp", "triangle", "step", "impact", "random", "recorded")
-
-
-def slow_rate_warning(test_id: str, dt_s: float, time_channel: str) -> list[str]:
+def _rate_warnings(test_id: str, dt_s: float, time_channel: str) -> list[str]:
     """A line when a test's sample rate is implausible for a rig: time in another unit?"""
     rate = 1.0 / dt_s
     if rate < MIN_PLAUSIBLE_RATE_HZ:
@@ -949,6 +944,18 @@ def slow_rate_warning(test_id: str, dt_s: float, time_channel: str) -> list[str]
         return [f"test '{test_id}': sample rate {rate:.3g} Hz, faster than any rig's logger; "
                 f"is {time_channel} in seconds?"]
     return []
+
+
+def data_warnings(campaign: Campaign, test_id: str) -> list[str]:
+    """What a test's data holds that a fit would take at face value and should not: a
+    sample rate no rig logs at, single-sample glitches. The data is read as it is; `mbst
+    check` and identification say these lines."""
+    family = campaign.family
+    df = campaign.frame(test_id)
+    logged = [ch.name for ch in family.channels
+              if ch.name in df.columns and ch.name != family.time_channel]
+    return (_rate_warnings(test_id, campaign.sample_time_s(test_id), family.time_channel)
+            + _spike_warnings(test_id, {c: df[c].to_numpy(dtype=float) for c in logged}))
 
 
 def summarize_campaign(campaign: Campaign) -> str:
@@ -1017,13 +1024,11 @@ def summarize_campaign(campaign: Campaign) -> str:
         other = [c for c in df.columns if c not in channel_names]
         if other:
             extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
-        extras += [f"WARNING: {w}" for w in slow_rate_warning(spec.id, dt, family.time_channel)]
+        extras += [f"WARNING: {w}" for w in data_warnings(campaign, spec.id)]
         if spec.input_kind not in (None, *INPUT_KINDS):
             extras.append(f"WARNING: test '{spec.id}': input kind '{spec.input_kind}' is none "
                           f"of {', '.join(INPUT_KINDS)}; the profile is read as informative "
                           "(the model is driven by the measured angle)")
-        extras += [f"WARNING: {w}" for w in spike_warnings(
-            spec.id, {c: df[c].to_numpy(dtype=float) for c in channels})]
         still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
         if still:
             extras.append(f"WARNING: test '{spec.id}': its input {family.input_channel} "
