@@ -70,7 +70,7 @@ def identified_without_current(clean_assist):
     return camp, truth, identify(camp, IdentifySettings())
 
 
-@pytest.mark.slow  # ~2 min; CI runs the clean passive campaigns of test_discover
+@pytest.mark.slow  # ~2 min; CI keeps the clean-data checks of each family at a smaller scale
 def test_clean_powered_campaign_gives_an_empty_answer(discovered):
     """The counterpart of the hidden-backlash test: nothing to name on a clean rig."""
     assert discovered.findings == [], [f"{f.effect}:{f.component}" for f in discovered.findings]
@@ -183,6 +183,7 @@ def test_hps_curve_from_the_motor_current(tmp_path):
     assert pre["boost_curve"]["converged"]
 
 
+@pytest.mark.slow  # ~50 s in CI (its fixture); CI identifies the powered curves in the HPS cases
 def test_assist_identification_on_the_bench(identified):
     """Issue #8 targets on a seeded compact campaign of seed 001's layout, current logged.
 
@@ -246,6 +247,7 @@ def test_assist_curve_without_a_current_sensor(identified_without_current):
     assert (merged.fit_percent > merged.fit_percent_true - 1.0).all(), merged
 
 
+@pytest.mark.slow  # reads the same fixture (~50 s)
 def test_assist_report(identified):
     camp, _, result, out = identified
     assert (out / "figures" / "assist_characteristic.png").stat().st_size > 10_000

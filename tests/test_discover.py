@@ -20,7 +20,7 @@ import mbst.discovery.extension as extension_mod
 import mbst.discovery.pipeline as pipeline_mod
 from mbst.cli import main
 from mbst.discovery import acceptance
-from mbst.discovery.pipeline import DiscoverSettings
+from mbst.discovery.pipeline import DiscoverSettings, discover
 from mbst.discovery.rounds.resolution import scaled_size
 from mbst.discovery.structure import CandidateScore, effective_samples, start_grid
 from mbst.io.campaign import read_campaign
@@ -28,11 +28,11 @@ from mbst.report.discovery import discovery_record, write_discover_outputs
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 from mbst.systems.eps.model import EPS_MODEL
 from mbst.systems.eps.params import EFFECT_CATALOGUE, EFFECTS
+from mbst.systems.friction_damper.bench import run_friction_damper_bench
 
 
-@pytest.fixture(scope="module")
-def backlash(tmp_path_factory):
-    """The worm-gear backlash case, with every simulated test id recorded in order.
+def _spied(run):
+    """``run()``'s discovery, with every simulated test id recorded in order.
 
     Every simulation of identification and discovery goes through
     ``fitting.twins_of_tests``; the spy replaces it wherever a module holds it.
@@ -59,14 +59,34 @@ def backlash(tmp_path_factory):
         for mod in holders:
             mp.setattr(mod, "twins_of_tests", spy_twins)
         mp.setattr(pipeline_mod, "compare", spy_compare)
-        # without the resolution step (12.7 s alone, ~20 s in CI beside the other worker):
-        # the clean campaign's test checks it and its report section
-        camp, truth, result = run_case(tmp_path_factory, ["backlash:worm_gear"],
-                                       resolution=False)
+        camp, truth, result = run()
     result.simulated_ids = seen
     return camp, truth, result
 
 
+@pytest.fixture(scope="module")
+def backlash(tmp_path_factory):
+    """The worm-gear backlash case on the compact plan (~3 min: its tests are slow; CI
+    checks the same case on the demo pipeline's own run, ``.ci/demo_answer.py``)."""
+    # without the resolution step (12.7 s alone, ~20 s in CI beside the other worker):
+    # the clean campaign's test checks it and its report section
+    return _spied(lambda: run_case(tmp_path_factory, ["backlash:worm_gear"],
+                                   resolution=False))
+
+
+@pytest.fixture(scope="module")
+def play(tmp_path_factory):
+    """A play planted in the friction damper's band (a few seconds): the whole discovery
+    path, rounds, evidence, comparison and outputs, at a size CI can afford."""
+    def run():
+        out = tmp_path_factory.mktemp("play")
+        camp = read_campaign(run_friction_damper_bench(
+            out, {"band.backlash.width_m": 1.2e-3}, seed=3))
+        return camp, None, discover(camp, DiscoverSettings(max_effects=1, neural=False))
+    return _spied(run)
+
+
+@pytest.mark.slow  # the backlash case (~3 min)
 def test_worm_gear_backlash_is_named_with_its_width(backlash):
     camp, truth, result = backlash
     assert_first_finding(result, "backlash:worm_gear", truth)
@@ -79,6 +99,7 @@ def test_worm_gear_backlash_is_named_with_its_width(backlash):
     assert [g.effect for g in result.findings] == ["backlash"]
 
 
+@pytest.mark.slow  # the backlash case (~3 min)
 def test_extension_restores_control_fit_to_the_true_model(backlash):
     _, _, result = backlash
     wide = result.comparison.pivot_table(index=["test", "channel"], columns="model",
@@ -93,6 +114,7 @@ def test_extension_restores_control_fit_to_the_true_model(backlash):
     assert result.gain["control_fit_percent_mean"] > 0
 
 
+@pytest.mark.slow  # the backlash case (~3 min)
 def test_discovery_record_follows_the_spec(backlash):
     _, _, result = backlash
     rec = json.loads(json.dumps(discovery_record(result)))
@@ -109,6 +131,7 @@ def test_discovery_record_follows_the_spec(backlash):
     assert rec["gain"]["aic_delta"] < 0
 
 
+@pytest.mark.slow  # the backlash case (~3 min)
 def test_control_tests_decide_nothing(backlash):
     """No control test is simulated before the comparison step (spied in the fixture)."""
     _, _, result = backlash
@@ -118,6 +141,20 @@ def test_control_tests_decide_nothing(backlash):
     assert {"s1_sine_0p5hz", "s2_sine_0p25hz"} <= set(before)
     assert "s2_sine_0p8hz_ctrl" not in before
     assert "s2_sine_0p8hz_ctrl" in seen[seen.index("COMPARE"):]
+
+
+def test_control_tests_decide_nothing_in_any_family(play):
+    """The same guard on the friction damper's whole discovery (CI's share): its held-out
+    earthquake record is simulated only once the comparison starts."""
+    camp, _, result = play
+    seen = result.simulated_ids
+    assert "COMPARE" in seen and result.findings
+    before = seen[: seen.index("COMPARE")]
+    ids = {t.id for t in camp.identification_tests()}
+    controls = {t.id for t in camp.tests if t.role == "control"}
+    assert controls and ids <= set(before)
+    assert not controls & set(before)
+    assert controls <= set(seen[seen.index("COMPARE"):])
 
 
 def test_effective_samples_counts_coloured_noise_as_fewer_samples():
@@ -286,6 +323,7 @@ def test_effect_sizes_scale_from_the_neutral_value():
     assert strib["rack.stribeck_friction.stribeck_velocity"] == 1e-3
 
 
+@pytest.mark.slow  # the backlash case (~3 min)
 def test_discover_outputs_carry_the_findings(backlash, tmp_path):
     _, _, result = backlash
     write_discover_outputs(result, tmp_path)
@@ -398,6 +436,7 @@ def test_a_tie_is_declared_only_between_components_that_move_as_one_body():
                            one_body, EPS_MODEL) == []
 
 
+@pytest.mark.slow  # the backlash case (~3 min)
 def test_base_refit_also_starts_from_the_reset_parameters(backlash):
     """A gain the reset start alone gives belongs to the base model, not to an effect.
 
@@ -456,6 +495,7 @@ def test_extension_falls_back_to_the_cascade_restarts(monkeypatch, quick_cost, e
     assert p[0] == expected_runs[-1]
 
 
+@pytest.mark.slow  # ~14 s in CI: a tires_on_ground campaign of its own; CI's time
 def test_tires_candidates_refit_the_offsets_the_cascade_frees(tmp_path):
     """A tire friction asymmetry is symmetric friction plus a constant force, which a base
     fit puts into the tie-rod force offsets. Refitted with only the tire parameters the
@@ -552,13 +592,13 @@ def test_a_candidate_with_evidence_refines_from_the_level_it_absorbed(tmp_path, 
         assert all(len(later) == 1 for later in seen[1:]), seen
 
 
-def test_a_failing_figure_or_page_never_loses_the_answer(backlash, tmp_path, monkeypatch):
+def test_a_failing_figure_or_page_never_loses_the_answer(play, tmp_path, monkeypatch):
     """Issue #30: a figure that dies (here as the reported ``KeyError: 'sindy'``) and a page
     that cannot be drawn up are listed as failures; discovery.json still holds the answer."""
     from mbst.report import discovery as discovery_report
     from mbst.report import discovery_figures
 
-    _, _, result = backlash
+    _, _, result = play
     result = dataclasses.replace(result, failures=[])
 
     def broken(*args, **kwargs):
@@ -567,11 +607,11 @@ def test_a_failing_figure_or_page_never_loses_the_answer(backlash, tmp_path, mon
     monkeypatch.setattr(discovery_figures, "comparison_bars", broken)
     write_discover_outputs(result, tmp_path / "figure")
     rec = json.loads((tmp_path / "figure" / "discovery.json").read_text())
-    assert [(f["effect"], f["component"]) for f in rec["findings"]] == [("backlash", "worm_gear")]
+    assert [(f["effect"], f["component"]) for f in rec["findings"]] == [("backlash", "band")]
     assert rec["failures"] == ["figure comparison.png: KeyError: 'sindy'"]
     page = (tmp_path / "figure" / "discovery.md").read_text()
     assert "## What failed" in page and "comparison.png" in page
-    assert "| 1 | backlash | worm_gear |" in page  # the rest of the page is intact
+    assert "| 1 | backlash | band |" in page  # the rest of the page is intact
     assert not (tmp_path / "figure" / "figures" / "comparison.png").exists()
     assert (tmp_path / "figure" / "figures" / "structure_test.png").stat().st_size > 10_000
 
@@ -579,11 +619,11 @@ def test_a_failing_figure_or_page_never_loses_the_answer(backlash, tmp_path, mon
     result = dataclasses.replace(result, failures=[])
     write_discover_outputs(result, tmp_path / "page")
     page = (tmp_path / "page" / "discovery.md").read_text()
-    assert "backlash / worm_gear" in page and "discovery.md: KeyError" in page
+    assert "backlash / band" in page and "discovery.md: KeyError" in page
     assert json.loads((tmp_path / "page" / "discovery.json").read_text())["findings"]
 
 
-def test_a_failing_evidence_method_is_recorded_not_raised(backlash, monkeypatch):
+def test_a_failing_evidence_method_is_recorded_not_raised(play, monkeypatch):
     from mbst.discovery.evidence import collect, neural, sindy
 
     def broken(*args, **kwargs):
@@ -591,7 +631,7 @@ def test_a_failing_evidence_method_is_recorded_not_raised(backlash, monkeypatch)
 
     monkeypatch.setattr(neural.NeuralResidual, "fit", broken)
     monkeypatch.setattr(sindy, "residual_regression", broken)
-    _, _, result = backlash
+    _, _, result = play
     library = result.base.model.candidate_library
     model, ev = collect.neural_evidence(result.residual_tests, DiscoverSettings(), library)
     assert model is None and ev["error"] == "FloatingPointError: planted"

@@ -250,6 +250,7 @@ def test_a_one_body_level_follows_its_partner_unless_a_prior_sets_the_split(test
     assert told.ties == {} and told.p_of(u)[idx["motor.coulomb_nm"]] != q[idx["motor.coulomb_nm"]]
 
 
+@pytest.mark.slow  # ~30 s in CI: a compact identification of its own; CI's time (benchmarks/README.md)
 def test_the_fit_keeps_the_motor_rack_split_where_model_error_would_move_it(tmp_path):
     """A rig whose friction is sharper than the model's regularised law (the bench
     integrates 3x finer with half the regularisation velocities): with the two levels

@@ -104,7 +104,12 @@ def test_a_look_alike_named_before_the_effect_is_dropped_by_the_backward_check(
     assert backward["dropped"] == [r["key"] for r in backward["checked"] if not r["needed"]]
 
 
-@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.slow)])
+# ~130 s in CI: under -m slow since CI checks the pipeline's own run of the demo against its
+# truth (.ci/demo_answer.py); the empty answer on clean data stays in CI at the scale of
+# each family's checks (tests/test_screen.py, test_unexplained.py, test_prismatic.py,
+# test_friction_damper.py)
+@pytest.mark.parametrize("seed", [pytest.param(1, marks=pytest.mark.slow),
+                                  pytest.param(2, marks=pytest.mark.slow)])
 def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
     _, _, result = run_case(tmp_path_factory, [], seed=seed)
     assert result.findings == [], [f.evidence for f in result.findings]

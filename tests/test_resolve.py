@@ -300,6 +300,7 @@ def _signature_record(camp, p, out: Path, readings: list[tuple[str, list[str]]])
     return out
 
 
+@pytest.mark.slow  # ~20 s in CI; CI keeps the look-alike and the designed-test cases
 def test_an_unexplained_findings_open_reading_is_decided_by_a_designed_test(tmp_path):
     """A motor cogging the catalogue lacks, on the free tie-rods: the torque's structure read
     as a ripple in the motor's angle or in the pinion's (the worm gear's 16.5 makes them

@@ -91,6 +91,7 @@ def test_a_value_the_stage_fits_already_or_a_family_without_a_tolerance_adds_no_
     assert not any(s.effect == rivals.STATED for s in rivals.specs(scorer.tests, EPS_MODEL, odd))
 
 
+@pytest.mark.slow  # ~20 s in CI; CI keeps the refit within the tolerance (the test after)
 def test_the_stated_values_are_refitted_only_where_one_step_says_they_can_come_near(stage):
     """One Gauss–Newton step from the statement, within the tolerance, reads what their
     refit reaches (here to a few points); where that is under half the winner's share the
