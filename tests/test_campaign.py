@@ -402,10 +402,12 @@ def test_a_time_step_of_a_nanosecond_and_an_unknown_input_kind_are_said(tmp_path
     assert any("test 's1_sine'" in w and "input kind 'sawtooth'" in w for w in warned)
 
 
-def test_a_single_sample_glitch_is_named_and_a_step_is_not(tmp_path):
+def test_a_glitch_of_one_to_three_samples_is_named_and_a_step_is_not(tmp_path):
     """One 100 rad sample in a ±0.5 rad angle passed `mbst check` and took the control
     torque FIT from 85 to 29 % without a word (found 2026-11-28). `check` and
-    identification's warnings now name it; a step of the input, as large, is no glitch."""
+    identification's warnings now name it, and a burst of two or three such samples (a
+    dropped word; the single-sample check saw none, each bad sample's neighbour being bad
+    too); a step of the input, as large, is no glitch."""
     from mbst.identify.cascade import prepare_campaign
 
     camp = build(tmp_path)
@@ -418,6 +420,11 @@ def test_a_single_sample_glitch_is_named_and_a_step_is_not(tmp_path):
         df.loc[100:, "steering_angle_rad"] += 100.0
         return df
 
+    def burst(df):
+        df.loc[[49, 50], "steering_torque_nm"] = -500.0  # data rows 50 and 51
+        df.loc[[149, 150, 151], "steering_torque_nm"] = [300.0, 320.0, 310.0]  # rows 150-152
+        return df
+
     edit_csv(camp, "s2_sine", glitch)
     edit_csv(camp, "s1_sine", step)
     text = summarize_campaign(read_campaign(camp))
@@ -426,6 +433,12 @@ def test_a_single_sample_glitch_is_named_and_a_step_is_not(tmp_path):
     assert "test 's2_sine'" in said[0] and "'steering_angle_rad', row 100" in said[0]
     _, warnings = prepare_campaign(read_campaign(camp), 0.005)
     assert [w for w in warnings if "far off" in w] == [said[0].removeprefix("WARNING: ")]
+
+    edit_csv(camp, "s1_sine", burst)
+    said = [ln for ln in summarize_campaign(read_campaign(camp)).splitlines()
+            if "far off its neighbours" in ln and "s1_sine" in ln]
+    assert len(said) == 1, said
+    assert "'steering_torque_nm', row 50" in said[0] and "(and 1 more)" in said[0]
 
 
 # --------------------------------------------------------------------------- campaign.yaml errors

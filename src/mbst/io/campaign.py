@@ -897,6 +897,8 @@ def _barely_moves(x: np.ndarray, dt_s: float) -> str:
 # 90th-percentile jump (a level a few glitches, each three jumps wide, cannot move), while
 # the neighbours agree with each other (no step), is a glitch.
 SPIKE_FACTOR = 1000.0
+# ... and so is a run of up to this many such samples (a dropped word, a bus hiccup)
+MAX_GLITCH_SAMPLES = 3
 # Sample rates no rig's log has: below, a time column in ms read as s (500 Hz logged reads
 # as 0.5 Hz, and a fit on it runs for hours); above, one in another unit (µs, ns).
 MIN_PLAUSIBLE_RATE_HZ = 20.0
@@ -906,30 +908,47 @@ INPUT_KINDS = ("sine", "sweep", "ramp", "triangle", "step", "impact", "random", 
 
 
 def isolated_spikes(x: np.ndarray) -> list[int]:
-    """Rows (0-based) of single samples far off both neighbours: a sensor or logger glitch
-    that a fit would chase. A step is no spike (its neighbours differ by the jump)."""
+    """First rows (0-based) of glitches: one sample, or a burst of up to ``MAX_GLITCH_SAMPLES``,
+    each far off the samples around it, that a fit would chase. A step is no glitch (the
+    samples around it differ by the jump). A logger that drops a word writes two or three
+    bad samples in a row; a check of single samples alone saw none of them (each bad
+    sample's neighbour was bad too)."""
     x = np.asarray(x, dtype=float)
     if x.size < 5:
         return []
-    jump = np.abs(x[1:-1] - 0.5 * (x[:-2] + x[2:]))
-    scale = float(np.percentile(jump, 90.0))
+    scale = float(np.percentile(np.abs(x[1:-1] - 0.5 * (x[:-2] + x[2:])), 90.0))
     if scale <= 0.0:
         return []
-    sides = np.abs(x[2:] - x[:-2])
-    return [int(i) + 1 for i in np.flatnonzero((jump > SPIKE_FACTOR * scale)
-                                               & (jump > 10.0 * sides))]
+    rows: set[int] = set()
+    for width in range(1, MAX_GLITCH_SAMPLES + 1):
+        rows.update(_bursts(x, width, scale))
+    # a burst is reported once, by its first row
+    return sorted(r for r in rows if r - 1 not in rows)
+
+
+def _bursts(x: np.ndarray, width: int, scale: float) -> list[int]:
+    """First rows of runs of ``width`` samples all far off the mean of the two samples
+    around the run, those two agreeing with each other."""
+    n = x.size
+    if n < width + 4:
+        return []
+    before, after = x[: n - width - 1], x[width + 1:]
+    mean, sides = 0.5 * (before + after), np.abs(after - before)
+    off = np.min([np.abs(x[1 + j: n - width + j] - mean) for j in range(width)], axis=0)
+    return [int(i) + 1 for i in np.flatnonzero((off > SPIKE_FACTOR * scale)
+                                               & (off > 10.0 * sides))]
 
 
 def _spike_warnings(test_id: str, channels: dict[str, np.ndarray]) -> list[str]:
-    """One line per channel that holds isolated spikes, naming the first's row."""
+    """One line per channel that holds glitches, naming the first's row."""
     out = []
     for ch, x in channels.items():
         rows = isolated_spikes(x)
         if rows:
             more = f" (and {len(rows) - 1} more)" if len(rows) > 1 else ""
             out.append(f"test '{test_id}': channel '{ch}', row {rows[0] + 1}: value "
-                       f"{x[rows[0]]:.6g} is a single sample far off its neighbours{more}; "
-                       "a glitch the fit will chase")
+                       f"{x[rows[0]]:.6g} is a glitch far off its neighbours (one sample or "
+                       f"a burst of up to {MAX_GLITCH_SAMPLES}){more}; the fit will chase it")
     return out
 
 
