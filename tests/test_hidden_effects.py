@@ -3,8 +3,9 @@
 Each case plants one catalogue effect at its realistic size in a seeded bench
 campaign and requires the first finding to name effect and component (and the
 size, for backlash); clean campaigns must give an empty answer. The compact
-plan (blocked column + free tie-rods) keeps a case near a minute; the whole
-catalogue runs under ``-m slow``. (The worm-gear backlash case, whose result many
+plan (blocked column + free tie-rods) keeps a case at 1–3 minutes; every case runs under
+``-m slow`` (CI checks the demo pipeline's own discovery against its bench truth instead,
+``.ci/demo_answer.py``). (The worm-gear backlash case, whose result many
 tests read, is in test_discover.py: a module of its own each keeps the two long
 runs on different workers.)
 """
