@@ -345,6 +345,28 @@ def test_discover_outputs_carry_the_findings(backlash, tmp_path):
         assert (tmp_path / "figures" / fig).stat().st_size > 10_000
 
 
+def test_outputs_carry_the_findings_in_any_family(play, tmp_path):
+    """What `mbst discover` writes holds the answer as the spec says (CI's share of the
+    backlash case's output tests): the record's format and finding, the comparison table
+    as scored, the engineer's figures."""
+    _, _, result = play
+    write_discover_outputs(result, tmp_path)
+    rec = json.loads((tmp_path / "discovery.json").read_text(),
+                     parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
+    assert rec["format"] == "mbst-discovery/2"
+    assert rec["findings"] == json.loads(json.dumps(discovery_record(result)))["findings"]
+    f = rec["findings"][0]
+    spec = result.base.model.effects[f"{f['effect']}:{f['component']}"]
+    assert set(f["parameters"]) == set(spec.headline) and 0 <= f["confidence"] <= 1
+    table = pd.read_csv(tmp_path / "comparison.csv")
+    merged = table.merge(result.comparison, on=["test", "channel", "model"])
+    assert len(merged) == len(result.comparison) > 0
+    np.testing.assert_allclose(merged.fit_percent_x, merged.fit_percent_y, atol=1e-3)
+    assert "| 1 | backlash | band |" in (tmp_path / "discovery.md").read_text()
+    for fig in ("structure_test.png", "comparison.png", "hysteresis.png"):
+        assert (tmp_path / "figures" / fig).stat().st_size > 10_000
+
+
 def test_cli_discover_bad_campaign_writes_nothing(tmp_path, capsys):
     camp_dir = run_bench(tmp_path / "bench", BenchRecipe(effects=[], seed=1, plan=compact_plan()))
     f = camp_dir / "tests" / "s2_ramp.csv"
