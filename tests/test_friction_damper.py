@@ -25,7 +25,12 @@ from mbst.systems.friction_damper import model as M
 from mbst.systems.friction_damper.bench import TRUE_BASE, run_friction_damper_bench
 from mbst.systems.friction_damper.benchmark import HYBRID, benchmark_record
 from mbst.systems.friction_damper.definition import FRICTION_DAMPER_MODEL
-from mbst.systems.friction_damper.importer import INCH_M, KIP_N, import_friction_damper
+from mbst.systems.friction_damper.importer import (
+    INCH_M,
+    KIP_N,
+    LB_N,
+    import_friction_damper,
+)
 
 DATA_DIR = Path(os.environ.get(
     "MBST_FRICTION_DAMPER_DIR",
@@ -135,6 +140,56 @@ def test_import_control_glob_picks_the_held_out_tests(sliced, tmp_path):
 
 
 @needs_data
+def test_import_reads_the_data_sets_own_layouts(sliced, tmp_path):
+    """Folders as the makers publish them ("characterization datasets", "earthquake
+    profiles"), dataset 1's names without an amplitude and dataset 4's eight columns
+    (two actuator positions before the forces)."""
+    d = tmp_path / "published-layout"
+    (d / "characterization datasets").mkdir(parents=True)
+    (d / "earthquake profiles").mkdir()
+    src = sliced / "characterization" / "0.5Hz36lbtension1amplitude.json"
+    (d / "characterization datasets" / "0.5Hz20lbtension.json").write_bytes(src.read_bytes())
+    doc = json.loads((sliced / "earthquake" / "ImperialValleyDBE.json").read_text())
+    raw = np.asarray(doc["data"])
+    doc["data"] = np.column_stack([raw[:, :4], raw[:, 1:3], raw[:, 4:]]).tolist()
+    (d / "earthquake profiles" / "ImperialValleyDBE.json").write_text(json.dumps(doc))
+    camp = read_campaign(import_friction_damper(d, tmp_path / "c"))
+    assert {t.id: t.role for t in camp.tests} == {"0p5Hz20lbtension": "identification",
+                                                  "ImperialValleyDBE": "control"}
+    sine = camp.test("0p5Hz20lbtension")
+    disp = camp.frame("0p5Hz20lbtension")["displacement_m"]
+    assert sine.input["kind"] == "sine" and sine.input["frequency_hz"] == 0.5
+    assert sine.input["amplitude_m"] == pytest.approx(0.5 * np.ptp(disp), abs=1e-6)
+    df = camp.frame("ImperialValleyDBE")
+    np.testing.assert_allclose(df["actuator_position_1_m"], raw[:, 1] * INCH_M)
+    np.testing.assert_allclose(df["actuator_force_1_n"], raw[:, 4] * LB_N)
+    # files directly in the folder identify; --control picks the held-out ones
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for f in (sliced / "characterization").glob("*.json"):
+        (flat / f.name).write_bytes(f.read_bytes())
+    camp = read_campaign(import_friction_damper(flat, tmp_path / "f", control="2Hz*"))
+    assert sorted(t.role for t in camp.tests) == ["control", "identification"]
+
+
+@needs_data
+def test_import_says_when_the_band_tensions_differ(sliced, tmp_path, caplog):
+    d = tmp_path / "tensions"
+    (d / "characterization").mkdir(parents=True)
+    for f in (sliced / "characterization").glob("*.json"):
+        (d / "characterization" / f.name).write_bytes(f.read_bytes())
+    src = sliced / "characterization" / "2Hz36lbtension0.5amplitude.json"
+    doc = json.loads(src.read_text())
+    data = np.asarray(doc["data"])
+    data[:, 2] *= 0.8  # a lower tension: less force (the same data would be refused)
+    (d / "characterization" / "2Hz30lbtension0.5amplitude.json").write_text(
+        json.dumps({**doc, "data": data.tolist()}))
+    camp = read_campaign(import_friction_damper(d, tmp_path / "c", control="2Hz36*"))
+    assert "band tensions of 30, 36 lb" in camp.extra["notes"]
+    assert "one tension at a time" in caplog.text
+
+
+@needs_data
 def test_import_refuses_a_duplicate_naming_both_files(sliced, tmp_path):
     d = tmp_path / "dup"
     for sub in ("characterization", "earthquake"):
@@ -149,6 +204,13 @@ def test_import_refuses_a_duplicate_naming_both_files(sliced, tmp_path):
     assert "ImperialValleyDBE.json" in str(err.value)
     assert "ImperialValleyDBE30lb.json" in str(err.value)
     assert not (tmp_path / "c").exists()
+    # one name in two folders (other data): refused, both files named
+    (d / "earthquake" / "ImperialValleyDBE30lb.json").unlink()
+    doc = json.loads((d / "earthquake" / "ImperialValleyDBE.json").read_text())
+    doc["data"] = doc["data"][:5000]
+    (d / "characterization" / "ImperialValleyDBE.json").write_text(json.dumps(doc))
+    with pytest.raises(CampaignError, match="test name of .*characterization.*rename"):
+        import_friction_damper(d, tmp_path / "c")
 
 
 @needs_data

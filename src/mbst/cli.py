@@ -222,7 +222,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
         camp = import_friction_damper(args.data_dir, args.out, control=args.control,
                                       overwrite=args.overwrite)
         what = ("system friction-damper; " + (f"tests matching {args.control!r}" if args.control
-                else "the earthquake tests") + " as the held-out controls")
+                else "the recorded histories (earthquake folders)") + " as the held-out controls")
     if not args.quiet:
         print(f"wrote {camp} ({what})")
     return 0

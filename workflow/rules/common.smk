@@ -36,6 +36,12 @@ def campaign_entry(wildcards):
     return config["campaigns"][wildcards.campaign]
 
 
+def import_control_args(wildcards):
+    """``--control GLOB`` where the config names the held-out tests of an import."""
+    glob = campaign_entry(wildcards)["import"].get("control")
+    return "" if glob is None else f"--control {shlex.quote(glob)}"
+
+
 def bench_recipe(wildcards):
     return campaign_entry(wildcards)["bench"]
 

@@ -13,9 +13,11 @@ rule import_campaign:
     params:
         fmt=lambda wildcards: campaign_entry(wildcards)["import"]["format"],
         data_dir=lambda wildcards: campaign_entry(wildcards)["import"]["data_dir"],
+        control=import_control_args,
         code=CODE_VERSION,
     conda:
         "../envs/mbst.yaml"
     shell:
-        "mbst import {params.fmt} {params.data_dir:q} --out {output.campaign:q} --overwrite"
+        "mbst import {params.fmt} {params.data_dir:q} {params.control} --out {output.campaign:q}"
+        " --overwrite"
         " > {log:q} 2>&1"

@@ -22,6 +22,9 @@ CHANNELS = (
     ChannelSpec("friction_force_n", "N", "friction force of the device (load cell)",
                 ALL_SCENARIOS),
     ChannelSpec("velocity_m_per_s", "m/s", "actuator velocity as recorded", ()),
+    ChannelSpec("actuator_position_1_m", "m", "position of the first actuator (the data "
+                "set's eight-column files)", ()),
+    ChannelSpec("actuator_position_2_m", "m", "position of the second actuator", ()),
     ChannelSpec("actuator_force_1_n", "N", "force of the first actuator", ()),
     ChannelSpec("actuator_force_2_n", "N", "force of the second actuator", ()),
 )

@@ -16,6 +16,7 @@ from __future__ import annotations
 import fnmatch
 import hashlib
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -26,18 +27,28 @@ from mbst.core.metrics import error_scores
 from mbst.io.campaign import CampaignError, TestSpec, write_campaign
 from mbst.systems.friction_damper.channels import SYSTEM_NAME
 
+log = logging.getLogger(__name__)
+
 INCH_M = 0.0254
 KIP_N = 4448.2216152605
 LB_N = 4.4482216152605
-# the file's columns, and the unit each must declare (key in the file: unit name)
+# the file's columns, and the unit each must declare (key in the file: unit name); the
+# data set's six-column layout (datasets 1-3) and its eight-column one (dataset 4, two
+# actuator positions before the forces, their unit the displacement's: none declared)
 COLUMNS = (("time_s", "time units", "s", 1.0),
            ("displacement_m", "displacement units", "in", INCH_M),
            ("friction_force_n", "friction force units", "kip", KIP_N),
            ("velocity_m_per_s", None, None, INCH_M),  # in/s, follows the displacement
            ("actuator_force_1_n", "actuator force units", "lb", LB_N),
            ("actuator_force_2_n", "actuator force units", "lb", LB_N))
-SINE_NAME = re.compile(r"(?P<f>[\d.]+)Hz(?P<t>[\d.]+)lbtension(?P<a>[\d.]+)amplitude$")
-DEFAULT_GROUPS = (("characterization", "identification"), ("earthquake", "control"))
+COLUMNS_8 = COLUMNS[:4] + (("actuator_position_1_m", None, None, INCH_M),
+                           ("actuator_position_2_m", None, None, INCH_M)) + COLUMNS[4:]
+SINE_NAME = re.compile(r"(?P<f>[\d.]+)Hz(?P<t>[\d.]+)lbtension((?P<a>[\d.]+)amplitude)?$")
+# a folder's tests are identification when its name starts so ("characterization",
+# "characterization datasets", "characterization tests"), else held-out controls
+# (earthquake and wind profiles: recorded histories); files beside them identify
+IDENTIFICATION_FOLDERS = "characterization"
+NOT_TESTS = ("published",)
 
 
 def test_id_of(stem: str) -> str:
@@ -64,8 +75,9 @@ def _read(path: Path, campaign: str) -> pd.DataFrame:
     if data.ndim != 2 or data.shape[1] < 3 or len(data) < 10:
         raise CampaignError(f"'data' has shape {data.shape}, expected rows × (time, "
                             "displacement, force, ...)", campaign=campaign, path=path)
+    layout = COLUMNS_8 if data.shape[1] == len(COLUMNS_8) else COLUMNS
     cols = {}
-    for j, (col, _key, _unit, scale) in enumerate(COLUMNS[:data.shape[1]]):
+    for j, (col, _key, _unit, scale) in enumerate(layout[:data.shape[1]]):
         bad = np.flatnonzero(~np.isfinite(data[:, j]))
         if bad.size:
             raise CampaignError(f"column {j + 1} ({col}) is not finite", campaign=campaign,
@@ -74,13 +86,17 @@ def _read(path: Path, campaign: str) -> pd.DataFrame:
     return pd.DataFrame(cols)
 
 
-def _input_of(stem: str, group: str) -> dict:
+def _input_of(stem: str, source: str, displacement_m: np.ndarray) -> dict:
+    """A sine test's frequency, amplitude and band tension from its file name (dataset 1
+    names no amplitude: half the measured stroke), else a recorded history."""
     m = SINE_NAME.match(stem)
     if m:
+        amplitude = (float(m["a"]) * INCH_M if m["a"] is not None
+                     else 0.5 * float(np.ptp(displacement_m)))
         return {"kind": "sine", "frequency_hz": float(m["f"]),
-                "amplitude_m": round(float(m["a"]) * INCH_M, 6),
+                "amplitude_m": round(amplitude, 6),
                 "band_tension_n": round(float(m["t"]) * LB_N, 3)}
-    return {"kind": "recorded", "source": f"{group}/{stem}.json"}
+    return {"kind": "recorded", "source": source}
 
 
 def _published(data_dir: Path, stem: str, force_n: np.ndarray, campaign: str) -> dict | None:
@@ -103,12 +119,33 @@ def _published(data_dir: Path, stem: str, force_n: np.ndarray, campaign: str) ->
             "nrmse": round(e["nrmse"], 5)}
 
 
+def _mixed_tensions(specs: list[TestSpec]) -> str:
+    """What to say when the sine tests were run at several band tensions (the data set's
+    dataset 2 mixes 0, 30 and 36 lb): the family's model has one friction level."""
+    lbs = sorted({round(s.input["band_tension_n"] / LB_N, 3) for s in specs
+                  if "band_tension_n" in s.input})
+    if len(lbs) < 2:
+        return ""
+    listed = ", ".join(f"{v:g}" for v in lbs)
+    return (f"the sine tests were run at band tensions of {listed} lb; the model has one "
+            "friction level per campaign, so import one tension at a time (a folder each)")
+
+
 def _files(data_dir: Path, campaign: str) -> list[tuple[Path, str]]:
-    files = [(p, group) for group, _role in DEFAULT_GROUPS
-             for p in sorted((data_dir / group).glob("*.json"))]
+    """Every test file with its default role: the data set's folders as published
+    ("characterization datasets", "earthquake profiles", ...) or as shared here
+    ("characterization", "earthquake"), and files directly in ``data_dir``."""
+    files = [(p, "identification") for p in sorted(data_dir.glob("*.json"))]
+    for folder in sorted(d for d in data_dir.iterdir() if d.is_dir()) \
+            if data_dir.is_dir() else ():
+        if folder.name in NOT_TESTS:
+            continue
+        role = ("identification" if folder.name.lower().startswith(IDENTIFICATION_FOLDERS)
+                else "control")
+        files += [(p, role) for p in sorted(folder.glob("*.json"))]
     if not files:
-        raise CampaignError("no test files (characterization/*.json, earthquake/*.json)",
-                            campaign=campaign, path=data_dir)
+        raise CampaignError("no test files (*.json in the folder or in its characterization"
+                            " and earthquake folders)", campaign=campaign, path=data_dir)
     return files
 
 
@@ -119,21 +156,22 @@ def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
     Parameters
     ----------
     data_dir
-        Folder with ``characterization/*.json``, ``earthquake/*.json`` and optionally
-        ``published/lugre_*.csv``.
+        Folder with ``characterization*/*.json`` (identification), other folders of
+        recorded histories such as ``earthquake/*.json`` (controls), test files of
+        its own (identification) and optionally ``published/lugre_*.csv``.
     out_dir
         The campaign directory to create (atomically).
     control
         A glob over file stems (e.g. ``'1Hz*'``): those tests are the controls and
-        every other test identifies. Default: the earthquake tests are the controls.
+        every other test identifies. Default: the recorded histories (earthquake,
+        wind) are the controls.
     overwrite
         Replace an existing campaign.
     """
     name = "friction-damper"
     data_dir = Path(data_dir)
-    roles = dict(DEFAULT_GROUPS)
-    tests, seen = [], {}
-    for path, group in _files(data_dir, name):
+    tests, seen, ids = [], {}, {}
+    for path, default_role in _files(data_dir, name):
         frame = _read(path, name)
         digest = hashlib.sha256(frame[["displacement_m", "friction_force_n"]]
                                 .to_numpy().tobytes()).hexdigest()
@@ -142,10 +180,16 @@ def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
                                 "remove one of the two files", campaign=name, path=path)
         seen[digest] = path
         stem = path.stem
-        role = roles[group] if control is None else (
+        if test_id_of(stem) in ids:
+            raise CampaignError(f"has the test name of {ids[test_id_of(stem)]}: rename one "
+                                "of the two files", campaign=name, path=path)
+        ids[test_id_of(stem)] = path
+        role = default_role if control is None else (
             "control" if fnmatch.fnmatch(stem, control) else "identification")
         spec = TestSpec(id=test_id_of(stem), file="", scenario="imposed_displacement",
-                        input=_input_of(stem, group), motor="actuator", role=role)
+                        input=_input_of(stem, path.relative_to(data_dir).as_posix(),
+                                        frame["displacement_m"].to_numpy()),
+                        motor="actuator", role=role)
         pub = _published(data_dir, stem, frame["friction_force_n"].to_numpy(), name)
         if pub is not None:
             spec.extra["published"] = pub
@@ -158,10 +202,15 @@ def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
     if not any(s.role == "identification" for s, _ in tests):
         raise CampaignError("every test is a control: nothing left to identify",
                             campaign=name, path=data_dir)
+    notes = ["SI units converted from in, kip and lb as the files declare them"]
+    mixed = _mixed_tensions([s for s, _ in tests])
+    if mixed:
+        log.warning("campaign %r from %s: %s", name, data_dir, mixed)
+        notes.append(mixed)
     return write_campaign(
         out_dir, name=name, system=SYSTEM_NAME, known={}, tests=tests,
         extra={"source": "Dataset-Friction-Damper-with-Backlash, Coble, Huggins, Cao, Ricles "
                          "& Downey (ARTS Lab, University of South Carolina), CC BY-SA 4.0",
-               "notes": "SI units converted from in, kip and lb as the files declare them"},
+               "notes": "; ".join(notes)},
         overwrite=overwrite,
     )
