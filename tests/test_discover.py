@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pandas as pd
@@ -818,7 +819,16 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
         refitted.append(scorer)
         return [cand("sensor_lag:steering_torque_nm", scorer, lag_gain[scorer])]
 
+    # nested with the lag, the winner removes this share of what the lag leaves
+    beyond_gain = {"blocked_column": 0.02, "free_tie_rods": 0.02}
+
+    def beyond(scorer, model, best, rival, stated=None):
+        left = rival.cost * (1.0 - beyond_gain[scorer])
+        return dataclasses.replace(best, cost_base=rival.cost, cost=left,
+                       aic_delta=500.0 * math.log(left / rival.cost) + 2.0)
+
     monkeypatch.setattr(rivals_mod, "rivals", rivals)
+    monkeypatch.setattr(rivals_mod, "beyond", beyond)
     monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.0)
     state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL,
                             campaign=SimpleNamespace(known={}, priors={}))
@@ -840,6 +850,15 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     weak = cand("asymmetric_friction:rack", "free_tie_rods", 0.05)
     assert catalogue_mod._past_rivals(state, scorers, [weak], {"round": 1}) == ([weak], [])
     assert refitted == []
+    # a winner that still removes the margin of what the lag leaves stands beside it: the
+    # lag is its rival in the ranking bootstrap, not its match (``rivals.beyond``)
+    beyond_gain["blocked_column"] = 0.30
+    rec = {"round": 1}
+    left, lags = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], rec)
+    assert left[0] is column and [s.key for s in lags] == ["sensor_lag:steering_torque_nm"]
+    assert "rival_declined" not in rec
+    assert rec["rival_beyond"][0]["stands"] and "30.0 % of what the latter leaves" in \
+        rec["rival_beyond"][0]["reason"]
 
 
 def test_a_stage_whose_winner_a_rival_matched_is_not_called_at_the_noise_floor():

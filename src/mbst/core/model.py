@@ -233,6 +233,9 @@ class ModelDefinition:
         rounds refit the stated values within it as a rival of each winner, and a misfit
         they explain as well is not named (``discovery/rivals.py``). 0: stated values
         are exact (a controller's gains), no such rival.
+    stated_tolerance_by_name
+        The stated values known better than ``stated_tolerance`` (name → relative
+        tolerance): geometry from a drawing, a gear's tooth ratio.
     specialise
         ``specialise(model, campaign) -> ModelDefinition`` adds the parameters
         a particular campaign brings (one assist curve per ``assist_mode``, one
@@ -271,6 +274,7 @@ class ModelDefinition:
     campaign_drift: tuple[str, tuple[str, ...]] | None = None
     ripple: Ripple | None = None
     stated_tolerance: float = 0.0
+    stated_tolerance_by_name: dict[str, float] = field(default_factory=dict)
     param_index: dict[str, int] = field(init=False)
     effects: dict[str, EffectSpec] = field(init=False)
 

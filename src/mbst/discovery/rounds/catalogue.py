@@ -256,7 +256,7 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
         if found:
             rec.setdefault("rivals", []).extend(score_record(s) for s in found)
         rival = rivals.matching(best, found)
-        if rival is None:
+        if rival is None or _stands_beyond(state, scorers[best.stage], best, rival, rec):
             return scores, found
         gone = rivals.declined(best, rival, stated(state))
         log.info("round %d: %s", rec["round"], gone["reason"])
@@ -265,13 +265,32 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
     return scores, []
 
 
+def _stands_beyond(state: DiscoveryState, scorer: StageScorer, best: CandidateScore,
+                   rival: CandidateScore, rec: dict) -> bool:
+    """Whether ``best`` still clears the margins with the matching ``rival`` in the stage
+    (``rivals.beyond``); recorded in ``rec`` either way. The rival stays in the ranking
+    bootstrap, so the winner's confidence says how often the data prefer it."""
+    past = rivals.beyond(scorer, state.model, best, rival, stated(state))
+    short = acceptance.margin_shortfall(past, state.settings.min_relative_gain,
+                                        aic_drop(state, best.k_effect))
+    said = (f"{best.key} with {rivals.label(rival.effect, rival.component)} in the stage "
+            f"removes {100 * past.relative_gain:.1f} % of what the latter leaves (ΔAIC "
+            f"{past.aic_delta:.0f})")
+    rec.setdefault("rival_beyond", []).append(
+        {"key": best.key, "rival": rival.key, "relative_gain": past.relative_gain,
+         "aic_delta": past.aic_delta, "stands": short is None, "reason": said})
+    log.info("round %d: %s: %s", rec["round"], said,
+             "the effect stands beyond it" if short is None else "matched")
+    return short is None
+
+
 def stated(state: DiscoveryState) -> rivals.Stated:
     """The known values the campaign holds fixed (a prior is fitted, not held), as the
     family's tolerance allows them to be off (``rivals.py``)."""
     campaign, model = state.campaign, state.model
     return rivals.Stated({n: float(v) for n, v in campaign.known.items()
                           if n in model.param_index and n not in campaign.priors},
-                         model.stated_tolerance)
+                         model.stated_tolerance, model.stated_tolerance_by_name)
 
 
 def aic_drop(state: DiscoveryState, k: int) -> float:
