@@ -859,6 +859,10 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     assert "rival_declined" not in rec
     assert rec["rival_beyond"][0]["stands"] and "30.0 % of what the latter leaves" in \
         rec["rival_beyond"][0]["reason"]
+    # ... and its finding says so beside "not ruled out"
+    said = catalogue_mod._beyond_text(SimpleNamespace(rounds=[rec]), column.key)
+    assert said.startswith("; BEYOND A RIVAL THAT MATCHED IT: stribeck_friction:steering_colu")
+    assert catalogue_mod._beyond_text(SimpleNamespace(rounds=[rec]), dahl.key) == ""
 
 
 def test_a_stage_whose_winner_a_rival_matched_is_not_called_at_the_noise_floor():

@@ -153,6 +153,7 @@ def test_geometry_is_stated_closer_than_an_inertia():
             f"(+{100 * tight:.1f} %, its bound)") in said
 
 
+@pytest.mark.slow  # ~19 s; CI keeps _past_rivals' use of it (test_discover) and the bands
 def test_an_effect_the_stated_values_stand_in_for_does_not_stand_beyond_them(stage):
     """Nested with the stated values (``rivals.beyond``), a catalogue effect on a clean
     stage whose motor inertia is stated 12 % low adds nothing the values do not: it stays

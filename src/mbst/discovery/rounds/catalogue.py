@@ -284,6 +284,15 @@ def _stands_beyond(state: DiscoveryState, scorer: StageScorer, best: CandidateSc
     return short is None
 
 
+def _beyond_text(state: DiscoveryState, key: str) -> str:
+    """What a matching rival left to the named effect (``_stands_beyond``), for its
+    evidence: the rival is not ruled out, but it does not explain the effect away."""
+    said = [g["reason"] for rec in state.rounds for g in rec.get("rival_beyond", [])
+            if g["key"] == key and g["stands"]]
+    return "".join(f"; BEYOND A RIVAL THAT MATCHED IT: {r}, more than the margins"
+                   for r in said[:1])
+
+
 def stated(state: DiscoveryState) -> rivals.Stated:
     """The known values the campaign holds fixed (a prior is fitted, not held), as the
     family's tolerance allows them to be off (``rivals.py``)."""
@@ -369,7 +378,7 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
     # how often the data, resampled, still name it — and the held-out folds agree
     confidence = (boot if boot is not None else proposal.weight) * cv_frac
     evidence = evidence_text(best, proposal.runner, cv, state.regions, sparse, neural,
-                             proposal.ties, proposal.bootstrap)
+                             proposal.ties, proposal.bootstrap) + _beyond_text(state, best.key)
     if proposal.ties and confidence > acceptance.EVEN_ODDS:
         # the parts move as one body and the same effect fits them alike: the effect is
         # named with the body's confidence, the part at even odds (realistic rig 905: a
