@@ -155,6 +155,8 @@ def test_hidden_stribeck_friction_is_named(tmp_path):
     assert pars["stribeck_velocity"] == pytest.approx(0.01, rel=0.2)
 
 
+# ~12 s; CI keeps the round on the real EMPS data (it names the drive lag there too)
+@pytest.mark.slow
 def test_equation_error_round_names_a_drive_lag(tmp_path):
     """The inverse model's round names a lag of the force path and its size.
 

@@ -286,6 +286,7 @@ def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
                                   "relative_gain": 0.565, "winner_better_share": 0.85}
                                  for e, c in alternatives]}
         state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                                rounds=[],
                                 residuals=[_residual("a", 16.0 / 0.0075 * w, rack_speed)])
         return proposal_finding(Proposal(best, None, {}, 0.5, [], boot), state, None, None)
 
@@ -302,6 +303,7 @@ def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
     boot = {"confidence": 0.87, "wins_share": 0.87, "explained_above_noise": 1.0,
             "resamples": 400, "gain_5_95_percent": [0.47, 0.64], "alternatives": []}
     state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                            rounds=[],
                             residuals=[_residual("a", 16.0 / 0.0075 * w, w)])
     tied = proposal_finding(Proposal(best, None, {}, 0.5, [(twin, 0.9998)], boot), state,
                             None, None)
@@ -358,6 +360,7 @@ def test_a_body_twin_within_the_winners_bootstrap_spread_is_named_beside_it():
     assert twins(w, cand("asymmetric_friction:rack", 0.26)) == []
 
     state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                            rounds=[],
                             residuals=[_residual("a", 16.0 / 0.0075 * w, w)])
     for confidence, expected in ((0.9, EVEN_ODDS), (0.18, 0.18)):
         b = {**boot, "confidence": confidence, "body_twins": twins(w, rack)}
@@ -510,6 +513,7 @@ def test_parts_the_base_fit_moved_apart_by_compensating_still_move_as_one_body()
                               "winner_better_share": 0.85}]}
     for residual, named in ((soft, ["rack"]), (apart, [])):
         state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                                rounds=[],
                                 residuals=[residual])
         f = proposal_finding(Proposal(best, None, {}, 0.5, [], boot), state, None, None)
         assert f.indistinguishable_from == named
