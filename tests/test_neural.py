@@ -117,6 +117,8 @@ def test_training_never_reads_control_tests(backlash):
     assert a.loss_history == b.loss_history
 
 
+# ~10 s; CI keeps the bench's and the sparse regression's same-seed checks
+@pytest.mark.slow
 def test_same_seed_same_model_other_seed_other_model(backlash):
     a = NeuralResidual(iterations=4, seed=11).fit(backlash)
     b = NeuralResidual(iterations=4, seed=11).fit(backlash)

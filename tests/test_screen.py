@@ -42,7 +42,9 @@ def _stage(tmp_path, effects: list[str]) -> tuple[StageScorer, list]:
 
 
 @pytest.mark.parametrize("effects", [
-    ["asymmetric_friction:rack"],
+    # ~14 s each; CI keeps the screen's clean rig and its later round, and the pipeline's
+    # demo (the structure test's own positive case)
+    pytest.param(["asymmetric_friction:rack"], marks=pytest.mark.slow),
     pytest.param(["position_dependent_friction:rack"], marks=pytest.mark.slow)])
 def test_the_screen_sees_an_effect_the_model_lacks(tmp_path, effects):
     scorer, screened = _stage(tmp_path, effects)
