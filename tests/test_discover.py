@@ -831,7 +831,7 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     monkeypatch.setattr(rivals_mod, "beyond", beyond)
     monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.0)
     state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL,
-                            campaign=SimpleNamespace(known={}, priors={}))
+                            campaign=SimpleNamespace(known={}, priors={}), failures=[])
     scorers = {"blocked_column": "blocked_column", "free_tie_rods": "free_tie_rods"}
     rec = {"round": 1}
     left, lags = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], rec)
@@ -859,6 +859,12 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     assert "rival_declined" not in rec
     assert rec["rival_beyond"][0]["stands"] and "30.0 % of what the latter leaves" in \
         rec["rival_beyond"][0]["reason"]
+    # a refit beside the rival that fails leaves the match (declined), and says so
+    monkeypatch.setattr(rivals_mod, "beyond", lambda *a, **k: 1 / 0)
+    rec2 = {"round": 2}
+    left, _ = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], rec2)
+    assert [g["key"] for g in rec2["rival_declined"]][0] == column.key
+    assert "ZeroDivisionError" in state.failures[-1]
     # ... and its finding says so beside "not ruled out"
     said = catalogue_mod._beyond_text(SimpleNamespace(rounds=[rec]), column.key)
     assert said.startswith("; BEYOND A RIVAL THAT MATCHED IT: stribeck_friction:steering_colu")

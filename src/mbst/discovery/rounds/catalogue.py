@@ -269,8 +269,16 @@ def _stands_beyond(state: DiscoveryState, scorer: StageScorer, best: CandidateSc
                    rival: CandidateScore, rec: dict) -> bool:
     """Whether ``best`` still clears the margins with the matching ``rival`` in the stage
     (``rivals.beyond``); recorded in ``rec`` either way. The rival stays in the ranking
-    bootstrap, so the winner's confidence says how often the data prefer it."""
-    past = rivals.beyond(scorer, state.model, best, rival, stated(state))
+    bootstrap, so the winner's confidence says how often the data prefer it. A refit that
+    fails leaves the match as it was, and the failure is reported."""
+    try:
+        past = rivals.beyond(scorer, state.model, best, rival, stated(state))
+    except Exception as exc:  # one check must never sink the round
+        log.warning("round %d: the refit of %s beside %s failed: %s: %s", rec["round"],
+                    best.key, rival.key, type(exc).__name__, exc)
+        state.failures.append(f"structure round {rec['round']} ({best.key} beside "
+                              f"{rival.key}): {type(exc).__name__}: {exc}")
+        return False
     short = acceptance.margin_shortfall(past, state.settings.min_relative_gain,
                                         aic_drop(state, best.k_effect))
     said = (f"{best.key} with {rivals.label(rival.effect, rival.component)} in the stage "
