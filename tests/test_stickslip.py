@@ -279,7 +279,7 @@ def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
     def finding(rack_speed, alternatives, confidence=0.9):
         best = SimpleNamespace(key="presliding_hysteresis:motor", effect="presliding_hysteresis",
                                component="motor", stage="free_tie_rods", relative_gain=0.577,
-                               aic_delta=-467.0, n_eff=545.0, tests=["a"])
+                               aic_delta=-467.0, n_eff=545.0, tests=["a"], params=None)
         boot = {"confidence": confidence, "wins_share": 0.85, "explained_above_noise": 0.9,
                 "resamples": 400, "gain_5_95_percent": [0.47, 0.64],
                 "alternatives": [{"key": f"{e}:{c}", "effect": e, "component": c,
@@ -299,7 +299,7 @@ def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
     twin = SimpleNamespace(component="rack", relative_gain=0.574)
     best = SimpleNamespace(key="asymmetric_friction:motor", effect="asymmetric_friction",
                            component="motor", stage="free_tie_rods", relative_gain=0.577,
-                           aic_delta=-467.0, n_eff=545.0, tests=["a"])
+                           aic_delta=-467.0, n_eff=545.0, tests=["a"], params=None)
     boot = {"confidence": 0.87, "wins_share": 0.87, "explained_above_noise": 1.0,
             "resamples": 400, "gain_5_95_percent": [0.47, 0.64], "alternatives": []}
     state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
@@ -314,6 +314,38 @@ def test_a_name_whose_body_twin_is_tied_or_not_ruled_out_is_at_most_even_odds():
     assert finding(w, same, confidence=0.3).confidence == 0.3
     assert finding(w, [("backlash", "rack_pinion")]).confidence == 0.9
     assert finding(np.cos(np.linspace(0, 33, 4000)), same).confidence == 0.9
+
+
+def test_a_name_whose_size_ends_on_the_edge_of_its_range_is_doubted():
+    """A clean realistic rig whose friction turns through zero speed ten times softer than
+    the model's (bench smoothing 10, seed 2011): the free tie-rods' winner was rack damping
+    ∝ |v|^0.20, the exponent's bound, at 0.70 (69.5 % of the stage, 100 % of the
+    resamples). A form pushed to its edge is the nearest catalogue shape, not a measured
+    size: the name is doubted and says so; inside its range it keeps its confidence."""
+    from mbst.discovery.acceptance import DOUBTED_CONFIDENCE
+    from mbst.discovery.rounds.catalogue import proposal_finding
+    from mbst.discovery.state import Proposal
+    from mbst.systems.eps.model import EPS_MODEL
+
+    w = np.sin(np.linspace(0, 20, 4000))
+    state = SimpleNamespace(model=EPS_MODEL, p=EPS_MODEL.default_vector(), regions=[],
+                            rounds=[], residuals=[_residual("a", 16.0 / 0.0075 * w, w)])
+    boot = {"confidence": 0.70, "wins_share": 1.0, "explained_above_noise": 0.7,
+            "resamples": 400, "gain_5_95_percent": [0.617, 0.747], "alternatives": []}
+
+    def finding(exponent: float):
+        params = EPS_MODEL.default_vector()
+        params[EPS_MODEL.param_index["rack.power_law_damping.exponent"]] = exponent
+        best = SimpleNamespace(key="power_law_damping:rack", effect="power_law_damping",
+                               component="rack", stage="free_tie_rods", relative_gain=0.695,
+                               aic_delta=-281.0, n_eff=239.0, tests=["a"], params=params)
+        return proposal_finding(Proposal(best, None, {}, 0.5, [], boot), state, None, None)
+
+    edge = finding(0.2002)
+    assert edge.confidence == DOUBTED_CONFIDENCE
+    assert "SIZE ON THE EDGE OF ITS RANGE: exponent 0.2002 (range 0.2–2)" in edge.evidence
+    inside = finding(0.55)
+    assert inside.confidence == 0.70 and "EDGE" not in inside.evidence
 
 
 def test_a_body_twin_within_the_winners_bootstrap_spread_is_named_beside_it():
@@ -335,7 +367,8 @@ def test_a_body_twin_within_the_winners_bootstrap_spread_is_named_beside_it():
         effect, component = key.split(":")
         return SimpleNamespace(key=key, effect=effect, component=component,
                                stage="free_tie_rods", relative_gain=gain, aic_delta=-300.0,
-                               n_eff=1054.0, tests=["a"], fell_back=False)
+                               n_eff=1054.0, tests=["a"], fell_back=False,
+                               params=None)
 
     best = cand("presliding_hysteresis:motor", 0.269)
     boot = {"confidence": 0.9, "wins_share": 0.97, "explained_above_noise": 1.0,
@@ -505,7 +538,7 @@ def test_parts_the_base_fit_moved_apart_by_compensating_still_move_as_one_body()
 
     best = SimpleNamespace(key="asymmetric_friction:motor", effect="asymmetric_friction",
                            component="motor", stage="free_tie_rods", relative_gain=0.759,
-                           aic_delta=-1314.0, n_eff=924.0, tests=["a"])
+                           aic_delta=-1314.0, n_eff=924.0, tests=["a"], params=None)
     boot = {"confidence": 0.67, "wins_share": 0.85, "explained_above_noise": 0.78,
             "resamples": 400, "gain_5_95_percent": [0.733, 0.785],
             "alternatives": [{"key": "asymmetric_friction:rack", "effect": "asymmetric_friction",

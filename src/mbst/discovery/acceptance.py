@@ -52,6 +52,9 @@ BOOTSTRAP_RIVALS = 7
 SEPARATED_SHARE = 0.95
 # the most a name can be worth against a part of its body the tests do not part from it
 EVEN_ODDS = 0.5
+# the most a name is worth whose form the data doubt: an outside signature explains its
+# residual as well, or its refit took a size on the edge of the effect's range
+DOUBTED_CONFIDENCE = 0.45
 
 
 def ranking_bootstrap(scorer: StageScorer, best: CandidateScore, scores: list[CandidateScore],
@@ -251,9 +254,16 @@ def size_on_bound(score: CandidateScore, model: ModelDefinition) -> bool:
     """Whether the refit left one of the effect's own parameters on an end of its search
     range that is not its neutral value (a size the range cut short, not one the data
     chose)."""
+    return bool(sizes_on_bound(score, model))
+
+
+def sizes_on_bound(score: CandidateScore, model: ModelDefinition) -> list[str]:
+    """The effect's own parameters that the refit left on a non-neutral end of their
+    search range, each as "name value (range lo–hi)"."""
     spec = model.effects.get(score.key)
     if spec is None or score.params is None:
-        return False
+        return []
+    out = []
     for n in spec.free:
         ps = model.spec(n)
         lo, hi = model.search_lower.get(n, ps.lower), ps.upper
@@ -264,8 +274,8 @@ def size_on_bound(score: CandidateScore, model: ModelDefinition) -> bool:
         # least-squares step stays inside, the rig-122 rack ratio ended at 3.986 of 4)
         if (v >= hi - 1e-2 * abs(hi) and hi != neutral) or \
                 (v <= lo + 1e-2 * abs(lo) and lo != neutral):
-            return True
-    return False
+            out.append(f"{n.rsplit('.', 1)[-1]} {v:.4g} (range {lo:.4g}–{hi:.4g})")
+    return out
 
 
 def moves_with(best: CandidateScore, component: str, residuals: dict[str, TestResidual],

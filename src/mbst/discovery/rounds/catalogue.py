@@ -407,6 +407,17 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
                      "assumes, which no resample of the data moves, so the name is at most "
                      f"even odds against {twin}")
         confidence = min(confidence, acceptance.EVEN_ODDS)
+    stretched = acceptance.sizes_on_bound(best, model)
+    if stretched:
+        # the form reached its edge, so it is the nearest catalogue shape, not a measured
+        # one (a clean rig whose friction turns softer through zero speed than the
+        # model's: rack damping ∝ |v|^0.2, the exponent's bound, was named at 0.70)
+        evidence += (f"; SIZE ON THE EDGE OF ITS RANGE: {', '.join(stretched)}: the data "
+                     "want more of this effect than its form allows, so the rig's law is "
+                     "likely another that resembles it here (possibly outside the "
+                     "catalogue); named as the nearest catalogue form, at most "
+                     f"{acceptance.DOUBTED_CONFIDENCE:.2f}")
+        confidence = min(confidence, acceptance.DOUBTED_CONFIDENCE)
     return Finding(
         effect=spec.effect, component=spec.component, parameters=params,
         confidence=confidence, evidence=evidence,

@@ -34,6 +34,7 @@ import numpy as np
 
 from mbst.core.family import get_system
 from mbst.core.model import ModelDefinition
+from mbst.discovery import acceptance
 from mbst.discovery.data import residual_data
 from mbst.discovery.rivals import STATED
 from mbst.discovery.rounds.ripple import LOCK_P_VALUE, fast_part, ripple_findings
@@ -56,7 +57,7 @@ from mbst.io.campaign import running_order_places
 log = logging.getLogger(__name__)
 
 # the confidence of a catalogue name that an outside signature explains as well
-DOUBTED_CONFIDENCE = 0.45
+DOUBTED_CONFIDENCE = acceptance.DOUBTED_CONFIDENCE
 
 
 def equally(sig: ChannelSignature, margin: float = 0.01) -> list[str]:
