@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 MAX_CONTENDERS = 3
 # evaluations of a refined candidate's refit step (``structure_test``'s ``refine_nfev``)
 REFINE_NFEV = 15
+# where a round's best loses its held-out tests, this many more that clear the margins are
+# cross-validated in turn (``_cross_validated``)
+CV_UNDERSTUDIES = 2
 
 
 @dataclass
@@ -82,20 +85,13 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
                          "sensor's own lag, a drift over the campaign or the stated known "
                          "values a bit off (``rival_declined``)")
         return None
+    held = _cross_validated(state, scorers, scores, lags, rec)
+    if held is None:
+        return None
+    scores, cv, lags = held
     best = scores[0]
     scorer = scorers[best.stage]
     drop = aic_drop(state, best.k_effect)
-    rec["aic_drop_needed"] = round(drop, 2)
-    declined = tuple(dict.fromkeys(g["stage"] for g in rec.get("rival_declined", [])))
-    short = acceptance.margin_shortfall(best, settings.min_relative_gain, drop, declined)
-    if short is not None:
-        rec["reason"] = short
-        return None
-    cv = acceptance.cross_validate(scorer, best, state.p, settings.cv_nfev)
-    if cv["folds"] and cv["wins"] * 2 < cv["folds"]:
-        rec["reason"] = (f"{best.key} lost leave-one-test-out cross-validation "
-                         f"({cv['wins']}/{cv['folds']})")
-        return None
     cost_before = state.cost
     if not _extend(state, scorer, best, rec):
         return None
@@ -117,6 +113,73 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
     if rnd + 1 >= settings.max_effects:
         return None  # no round after this one to screen for
     return _next_candidates(state, scores, rec)
+
+
+def _cross_validated(state: DiscoveryState, scorers: dict[str, StageScorer],
+                     scores: list[CandidateScore], lags: list[CandidateScore], rec: dict
+                     ) -> tuple[list[CandidateScore], dict, list[CandidateScore]] | None:
+    """The candidates with the first, best first, that clears the margins and wins
+    leave-one-test-out cross-validation in front, its folds and the rivals refitted in its
+    stage; ``None`` (the reason in ``rec``) when the best does not clear the margins or
+    none of the first ``1 + CV_UNDERSTUDIES`` that do holds out. One that loses its
+    held-out tests fits what they do not share; the next that clears the margins, and that
+    no reality outside the catalogue matches, is then tried (realistic rig 2013: a rack
+    presliding took 22.3 % of the free tie-rods and won 1 of 3 folds, and the planted 0.2°
+    worm-gear backlash behind it, 18.1 % at ΔAIC −96, was never tried). Those lost stay in
+    the ranking bootstrap, so the confidence still says how often the data prefer the
+    name to them."""
+    min_gain = state.settings.min_relative_gain
+    declined = tuple(dict.fromkeys(g["stage"] for g in rec.get("rival_declined", [])))
+    drop = aic_drop(state, scores[0].k_effect)
+    rec["aic_drop_needed"] = round(drop, 2)
+    short = acceptance.margin_shortfall(scores[0], min_gain, drop, declined)
+    if short is not None:
+        rec["reason"] = short
+        return None
+    lost: list[dict] = []
+    for s in scores[:1 + CV_UNDERSTUDIES]:
+        if acceptance.margin_shortfall(s, min_gain, aic_drop(state, s.k_effect)) is not None:
+            continue
+        found = _understudy_rivals(state, scorers, s, scores[0], lags, rec)
+        if found is None:
+            continue
+        cv = acceptance.cross_validate(scorers[s.stage], s, state.p,
+                                       state.settings.cv_nfev)
+        if not cv["folds"] or cv["wins"] * 2 >= cv["folds"]:
+            if lost:
+                rec["cross_validation_lost"] = lost
+                rec["aic_drop_needed"] = round(aic_drop(state, s.k_effect), 2)
+            return [s] + [x for x in scores if x is not s], cv, found
+        lost.append({"key": s.key, "relative_gain": s.relative_gain, "wins": cv["wins"],
+                     "folds": cv["folds"]})
+    rec["reason"] = "; ".join(f"{g['key']} lost leave-one-test-out cross-validation "
+                              f"({g['wins']}/{g['folds']})" for g in lost)
+    return None
+
+
+def _understudy_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
+                       cand: CandidateScore, lead: CandidateScore,
+                       lags: list[CandidateScore], rec: dict) -> list[CandidateScore] | None:
+    """The rivals refitted in ``cand``'s stage, or ``None`` where one matches it: the
+    round's lead was checked against them already (``_past_rivals``)."""
+    if cand is lead:
+        return lags
+    if cand.stage == lead.stage:
+        rival = rivals.matching(cand, lags)
+        return lags if rival is None or _stands_beyond(
+            state, scorers[cand.stage], cand, rival, rec) else None
+    kept, found = _past_rivals(state, scorers, [cand], rec)
+    return found if kept else None
+
+
+def _lost_text(state: DiscoveryState, key: str) -> str:
+    """The better-fitting candidates of the named effect's round that lost their held-out
+    tests (``_cross_validated``), for its evidence."""
+    lost = [g for rec in state.rounds if rec.get("accepted") == key
+            for g in rec.get("cross_validation_lost", [])]
+    return "".join(f"; AHEAD OF IT, NOT HELD OUT: {g['key']} removed "
+                   f"{100 * g['relative_gain']:.1f} % but won {g['wins']}/{g['folds']} "
+                   "leave-one-test-out folds" for g in lost)
 
 
 def _next_candidates(state: DiscoveryState, scores: list[CandidateScore], rec: dict
@@ -387,6 +450,7 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
     confidence = (boot if boot is not None else proposal.weight) * cv_frac
     evidence = evidence_text(best, proposal.runner, cv, state.regions, sparse, neural,
                              proposal.ties, proposal.bootstrap) + _beyond_text(state, best.key)
+    evidence += _lost_text(state, best.key)
     if proposal.ties and confidence > acceptance.EVEN_ODDS:
         # the parts move as one body and the same effect fits them alike: the effect is
         # named with the body's confidence, the part at even odds (realistic rig 905: a
@@ -487,8 +551,9 @@ def evidence_text(best: CandidateScore, runner: CandidateScore | None, cv: dict,
                          "through the model); the rest is something else (another effect, or "
                          "one outside the catalogue), and the confidence is shared accordingly")
     if cv.get("folds"):
+        change = f"{-100 * cv['held_out_gain']:+.1f}".replace("-", "−")
         parts.append(f"leave-one-test-out: better on {cv['wins']}/{cv['folds']} held-out tests, "
-                     f"held-out cost −{100 * cv['held_out_gain']:.1f} %")
+                     f"held-out cost {change} %")
     else:
         parts.append(cv.get("note", "no cross-validation"))
     if regions:
