@@ -346,6 +346,17 @@ def test_a_name_whose_size_ends_on_the_edge_of_its_range_is_doubted():
     assert "SIZE ON THE EDGE OF ITS RANGE: exponent 0.2002 (range 0.2–2)" in edge.evidence
     inside = finding(0.55)
     assert inside.confidence == 0.70 and "EDGE" not in inside.evidence
+    # a shape on its bound is not a strength cut short: the demo's tire Stribeck ends with
+    # its velocity on the search bound and the ratio inside its range
+    params = EPS_MODEL.default_vector()
+    params[EPS_MODEL.param_index["tires.stribeck_friction.static_to_coulomb_ratio"]] = 2.1
+    params[EPS_MODEL.param_index["tires.stribeck_friction.stribeck_velocity"]] = \
+        EPS_MODEL.search_lower["tires.stribeck_friction.stribeck_velocity"]
+    dip = SimpleNamespace(key="stribeck_friction:tires", effect="stribeck_friction",
+                          component="tires", stage="tires_on_ground", relative_gain=0.99,
+                          aic_delta=-900.0, n_eff=900.0, tests=["a"], params=params)
+    assert proposal_finding(Proposal(dip, None, {}, 0.5, [], boot), state, None,
+                            None).confidence == 0.70
 
 
 def test_a_body_twin_within_the_winners_bootstrap_spread_is_named_beside_it():

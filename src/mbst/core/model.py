@@ -292,6 +292,14 @@ class ModelDefinition:
     def spec(self, name: str) -> ParamSpec:
         return self.param_specs[self.param_index[name]]
 
+    def size_parameters(self, effect: EffectSpec) -> tuple[str, ...]:
+        """Parameters that set the strength of ``effect`` (``EffectSpec.size_parameters``,
+        else every free one whose realistic size differs from its neutral value)."""
+        if effect.size_parameters:
+            return effect.size_parameters
+        return tuple(n for n in effect.free
+                     if effect.default_size[n] != self.spec(n).default)
+
     def default_vector(self) -> np.ndarray:
         return np.array([s.default for s in self.param_specs], dtype=np.float64)
 

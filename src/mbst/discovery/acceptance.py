@@ -257,14 +257,16 @@ def size_on_bound(score: CandidateScore, model: ModelDefinition) -> bool:
     return bool(sizes_on_bound(score, model))
 
 
-def sizes_on_bound(score: CandidateScore, model: ModelDefinition) -> list[str]:
-    """The effect's own parameters that the refit left on a non-neutral end of their
+def sizes_on_bound(score: CandidateScore, model: ModelDefinition,
+                   strength_only: bool = False) -> list[str]:
+    """The effect's own parameters (with ``strength_only``, those that set its strength:
+    ``ModelDefinition.size_parameters``) that the refit left on a non-neutral end of their
     search range, each as "name value (range lo–hi)"."""
     spec = model.effects.get(score.key)
     if spec is None or score.params is None:
         return []
     out = []
-    for n in spec.free:
+    for n in model.size_parameters(spec) if strength_only else spec.free:
         ps = model.spec(n)
         lo, hi = model.search_lower.get(n, ps.lower), ps.upper
         # an inverse size (a presliding stiffness) is neutral at its stiff end

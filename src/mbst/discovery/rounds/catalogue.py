@@ -471,11 +471,13 @@ def proposal_finding(proposal: Proposal, state: DiscoveryState, sparse: dict | N
                      "assumes, which no resample of the data moves, so the name is at most "
                      f"even odds against {twin}")
         confidence = min(confidence, acceptance.EVEN_ODDS)
-    stretched = acceptance.sizes_on_bound(best, model)
+    stretched = acceptance.sizes_on_bound(best, model, strength_only=True)
     if stretched:
-        # the form reached its edge, so it is the nearest catalogue shape, not a measured
-        # one (a clean rig whose friction turns softer through zero speed than the
-        # model's: rack damping ∝ |v|^0.2, the exponent's bound, was named at 0.70)
+        # the effect's strength reached its edge, so its form is the nearest catalogue
+        # shape, not a measured one (a clean rig whose friction turns softer through zero
+        # speed than the model's: rack damping ∝ |v|^0.2, the exponent's bound, was named
+        # at 0.70). A shape parameter on its bound is not this (the demo's tire Stribeck
+        # velocity ends on its search bound, the ratio inside its range).
         evidence += (f"; SIZE ON THE EDGE OF ITS RANGE: {', '.join(stretched)}: the data "
                      "want more of this effect than its form allows, so the rig's law is "
                      "likely another that resembles it here (possibly outside the "

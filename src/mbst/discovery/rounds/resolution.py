@@ -163,9 +163,7 @@ class Resolution:
 
 def size_parameters(spec: EffectSpec, model: ModelDefinition) -> tuple[str, ...]:
     """Model parameters that set the strength of ``spec`` (see ``EffectSpec.size_parameters``)."""
-    if spec.size_parameters:
-        return spec.size_parameters
-    return tuple(n for n in spec.free if spec.default_size[n] != model.spec(n).default)
+    return model.size_parameters(spec)
 
 
 def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float,
