@@ -913,6 +913,21 @@ def test_a_winner_that_loses_its_held_out_tests_leaves_the_next_one_tried(monkey
     state.rounds = [rec | {"accepted": gap.key}]
     assert "AHEAD OF IT, NOT HELD OUT: presliding_hysteresis:rack removed 22.3 % but won " \
         "1/3" in catalogue_mod._lost_text(state, gap.key)
+    # a rival in the stage that removes as much as the next one, and that it does not
+    # stand beyond, keeps it from being tried
+    from mbst.discovery import rivals as rivals_mod
+
+    lag = cand("sensor_lag:steering_torque_nm", 0.20, -80.0)
+    monkeypatch.setattr(rivals_mod, "beyond", lambda scorer, model, best, rival, stated=None:
+                        dataclasses.replace(best, cost_base=rival.cost, cost=rival.cost,
+                                            aic_delta=2.0))
+    state.campaign, state.model, state.failures = \
+        SimpleNamespace(known={}, priors={}), EPS_MODEL, []
+    tried.clear()
+    rec = {"round": 1}
+    assert catalogue_mod._cross_validated(state, scorers, [dahl, gap, small], [lag],
+                                          rec) is None
+    assert tried == [dahl.key] and not rec["rival_beyond"][0]["stands"]
     # all that clear the margins lose: nothing named, the round says why
     wins[gap.key] = 0
     tried.clear()

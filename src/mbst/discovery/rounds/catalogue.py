@@ -166,8 +166,11 @@ def _understudy_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
         return lags
     if cand.stage == lead.stage:
         rival = rivals.matching(cand, lags)
-        return lags if rival is None or _stands_beyond(
-            state, scorers[cand.stage], cand, rival, rec) else None
+        if rival is None or _stands_beyond(state, scorers[cand.stage], cand, rival, rec):
+            return lags
+        log.info("round %d: %s is not tried in its lead's place: %s matches it",
+                 rec["round"], cand.key, rival.key)
+        return None
     kept, found = _past_rivals(state, scorers, [cand], rec)
     return found if kept else None
 
