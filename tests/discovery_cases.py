@@ -49,3 +49,20 @@ def assert_first_finding(result, key: str, truth: dict) -> None:
     if f.effect == "backlash":
         true_w = truth["effects"][0]["parameters"]["width_rad"]
         assert f.parameters["width_rad"] == pytest.approx(true_w, rel=0.2)
+
+
+# a candidate row of a structure round, as discovery.json holds it
+ROW = {"stage": "free_tie_rods", "fell_back": False}
+
+
+def structure_axes(monkeypatch, rounds: list[dict], path):
+    """The first axes of ``figures.structure_bars`` drawn for ``rounds`` (not saved)."""
+    from types import SimpleNamespace
+
+    import mbst.report.discovery_figures as figures
+
+    drawn = []
+    monkeypatch.setattr(figures.plots, "save_figure", lambda fig, out: drawn.append(fig))
+    figures.structure_bars(SimpleNamespace(
+        rounds=rounds, settings=SimpleNamespace(min_relative_gain=0.1)), path)
+    return drawn[0].axes[0]

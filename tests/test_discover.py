@@ -941,6 +941,24 @@ def test_a_winner_that_loses_its_held_out_tests_leaves_the_next_one_tried(monkey
     assert tried == [] and "is at the noise floor" in rec["reason"]
 
 
+def test_the_structure_figure_says_which_candidate_lost_its_held_out_tests(
+        monkeypatch, tmp_path):
+    """Rig 2013's round 1 drew the rack presliding above the accepted backlash with nothing
+    to say why it was passed over: its label now says it lost its held-out tests."""
+    from discovery_cases import ROW, structure_axes
+
+    rounds = [{"round": 1, "accepted": "backlash:worm_gear", "candidates": [
+        {**ROW, "key": "presliding_hysteresis:rack", "relative_gain": 0.223},
+        {**ROW, "key": "backlash:worm_gear", "relative_gain": 0.181}],
+        "cross_validation_lost": [{"key": "presliding_hysteresis:rack",
+                                   "relative_gain": 0.223, "wins": 1, "folds": 3}]}]
+    labels = [t.get_text().replace("\n", " ")  # top to bottom, wrapped at 60 characters
+              for t in structure_axes(monkeypatch, rounds, tmp_path / "s.png"
+                                      ).get_yticklabels()]
+    assert labels == ["presliding_hysteresis:rack (free_tie_rods) — won 1/3 held-out tests",
+                      "backlash:worm_gear (free_tie_rods)"], labels
+
+
 def test_a_stage_whose_winner_a_rival_matched_is_not_called_at_the_noise_floor():
     """Realistic powered rig r5 (stop 71, a motor Dahl term planted): the stated values
     matched free tie-rods' winner (13.5 % against 12.3 %), and the round then stopped on the

@@ -91,22 +91,15 @@ def test_a_torque_zero_the_blocked_column_set_off_is_not_read_as_asymmetric_fric
 def test_the_structure_figure_draws_each_rival_beside_the_candidates(monkeypatch, tmp_path):
     """A winner named at a low confidence because a rival removes more: the figure an
     engineer opens shows that rival, in grey, above the winner."""
-    from types import SimpleNamespace
-
+    from discovery_cases import ROW as row
+    from discovery_cases import structure_axes
     from matplotlib.colors import to_rgba
 
-    import mbst.report.discovery_figures as figures
-
-    drawn = []
-    monkeypatch.setattr(figures.plots, "save_figure", lambda fig, path: drawn.append(fig))
-    row = {"stage": "free_tie_rods", "fell_back": False}
     rounds = [{"round": 1, "accepted": "asymmetric_friction:rack", "candidates": [
         {**row, "key": "asymmetric_friction:rack", "relative_gain": 0.716},
         {**row, "key": "stribeck_friction:rack", "relative_gain": 0.03}],
         "rivals": [{**row, "key": "sensor_zero:steering_torque_nm", "relative_gain": 0.825}]}]
-    figures.structure_bars(SimpleNamespace(
-        rounds=rounds, settings=SimpleNamespace(min_relative_gain=0.1)), tmp_path / "s.png")
-    ax = drawn[0].axes[0]
+    ax = structure_axes(monkeypatch, rounds, tmp_path / "s.png")
     labels = [t.get_text() for t in ax.get_yticklabels()]  # top to bottom
     assert labels[0] == "sensor_zero:steering_torque_nm (free_tie_rods) — rival", labels
     assert labels[1].startswith("asymmetric_friction:rack")

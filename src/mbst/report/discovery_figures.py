@@ -81,6 +81,8 @@ def structure_bars(result, path: Path) -> None:
         colors = ["tab:green" if c["key"] == r["accepted"] else "tab:blue" for c in cands]
         y = np.arange(len(cands))[::-1]
         rival = np.array([bool(c.get("rival")) for c in cands])
+        # ahead of the winner by share, but lost its held-out tests (``_cross_validated``)
+        lost = {g["key"]: g for g in r.get("cross_validation_lost", [])}
         ax.barh(y[~rival], np.array(gains)[~rival], color=np.array(colors)[~rival])
         if rival.any():
             ax.barh(y[rival], np.array(gains)[rival], color="tab:gray",
@@ -89,8 +91,11 @@ def structure_bars(result, path: Path) -> None:
         # a rival of several channels has a long key: wrapped, not cut at the figure's edge
         ax.set_yticks(y, [textwrap.fill(f"{c['key']} ({c['stage']})"
                                         + (" — rival" if c.get("rival") else "")
-                                        + (" — refit stuck, off" if c.get("fell_back") else ""),
-                                        60)
+                                        + (" — refit stuck, off" if c.get("fell_back") else "")
+                                        + (f" — won {lost[c['key']]['wins']}/"
+                                           f"{lost[c['key']]['folds']} held-out tests"
+                                           if c["key"] in lost and not c.get("rival") else ""),
+                                        60, break_on_hyphens=False)
                           for c in cands], fontsize=7)
         method = r.get("method")
         margin = {"stick_slip": stickslip.MIN_GAIN,

@@ -161,11 +161,6 @@ class Resolution:
         return rec
 
 
-def size_parameters(spec: EffectSpec, model: ModelDefinition) -> tuple[str, ...]:
-    """Model parameters that set the strength of ``spec`` (see ``EffectSpec.size_parameters``)."""
-    return model.size_parameters(spec)
-
-
 def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float,
                 other_side: bool = False) -> dict[str, float]:
     """The effect's parameters with its strength ``multiple`` × the realistic size.
@@ -179,7 +174,7 @@ def scaled_size(spec: EffectSpec, model: ModelDefinition, multiple: float,
     realistic = {**spec.default_size, **spec.other_side_size} if other_side \
         else spec.default_size
     out = dict(realistic)
-    for n in size_parameters(spec, model):
+    for n in model.size_parameters(spec):
         ps, size = model.spec(n), realistic[n]
         v = size / multiple if n in spec.inverse_size else \
             ps.default + multiple * (size - ps.default)
@@ -195,7 +190,7 @@ def size_multiple(spec: EffectSpec, model: ModelDefinition, values: dict[str, fl
     realistic = {**spec.default_size, **spec.other_side_size} if other_side \
         else spec.default_size
     out = math.inf
-    for n in size_parameters(spec, model):
+    for n in model.size_parameters(spec):
         if n not in values:
             continue
         v, size, neutral = values[n], realistic[n], model.spec(n).default
@@ -292,7 +287,7 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
     floor = scorer.noise_cost()
     out = {spec.key: Resolution(spec.key, spec.effect, spec.component, stage,
                                 [h for h, n in spec.headline.items()
-                                 if n in size_parameters(spec, model)],
+                                 if n in model.size_parameters(spec)],
                                 stage_over_floor=cost / floor if floor > 0 else None)
            for spec in specs}
     for (spec, other, m, values), e in zip(sizes, energy, strict=True):
