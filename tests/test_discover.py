@@ -981,7 +981,7 @@ def test_a_stage_whose_winner_a_rival_matched_is_not_called_at_the_noise_floor()
 
     result = SimpleNamespace(
         campaign="r5", wall_s=1.0, findings=[], resolution=[], benchmark=None, signatures=[],
-        failures=[], comparison=pd.DataFrame({"test": ["c"], "channel": ["steering_torque_nm"],
+        failures=[], gain={}, comparison=pd.DataFrame({"test": ["c"], "channel": ["steering_torque_nm"],
                                               "model": ["base"], "fit_percent": [98.8]}),
         rounds=[{"round": 1, "reason": said, "rival_declined": [
             {"key": "presliding_hysteresis:rack", "stage": "free_tie_rods",
@@ -1170,3 +1170,28 @@ def test_a_refined_refit_takes_no_further_step_once_its_work_is_spent(monkeypatc
     structure_mod.StageScorer._refit(scorer, spec, np.zeros(1), [np.zeros(1)], 15,
                                      converge=True)
     assert len(calls) == (1 if spent else structure_mod.MAX_REFINE_STEPS)
+
+
+def test_the_control_table_leaves_no_row_of_blanks_and_says_what_it_could_not_score():
+    """The demo's free-tie-rods control logs the tie-rod forces, which are constant there:
+    its rows read "nan | nan | nan" in every family. Such a channel is listed as not scored;
+    a family without a FIT in one cell shows a dash; the means are printed beneath."""
+    from mbst.report.discovery import control_lines
+
+    rows = [("s2", "steering_torque_nm", "base", 85.3), ("s2", "steering_torque_nm",
+                                                          "extended", 98.4),
+            ("s2", "steering_torque_nm", "sindy", np.nan),
+            ("s2", "tie_rod_force_left_n", "base", np.nan),
+            ("s2", "tie_rod_force_left_n", "extended", np.nan),
+            ("s2", "tie_rod_force_left_n", "sindy", np.nan),
+            ("s3", "steering_torque_nm", "base", 98.8), ("s3", "steering_torque_nm",
+                                                          "extended", 99.8),
+            ("s3", "steering_torque_nm", "sindy", 67.3)]
+    table = pd.DataFrame(rows, columns=["test", "channel", "model", "fit_percent"])
+    text = "\n".join(control_lines(table))
+    assert "nan" not in text
+    assert "| s2 | steering_torque_nm | 85.3 | 98.4 | – |" in text
+    assert "| s2 | tie_rod_force_left_n |" not in text
+    assert "Not scored (the measured channel is constant in the test, so no FIT is " \
+        "defined): s2 tie_rod_force_left_n." in text
+    assert "Mean over the rows above: base 92.0 %, extended 99.1 %, sindy 67.3 %." in text

@@ -40,7 +40,11 @@ from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.rounds.catalogue import proposal_finding, structure_rounds
 from mbst.discovery.rounds.equation_error import equation_error_round
 from mbst.discovery.rounds.resolution import Resolution, resolution_round
-from mbst.discovery.rounds.stickslip import sawtooth_in_another_part, stick_slip_round
+from mbst.discovery.rounds.stickslip import (
+    held_out_envelopes,
+    sawtooth_in_another_part,
+    stick_slip_round,
+)
 from mbst.discovery.rounds.unexplained import (
     campaign_places,
     driving_input,
@@ -252,6 +256,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
         "identification_cost_extended": state.cost,
         "effective_samples": n_eff,
     }
+    _stick_slip_held_out(gain, findings, state, cmp.twins)
     failures = [f"{name} evidence: {ev['error']}" for name, ev in
                 (("sparse-regression", sparse_ev), ("neural-residual", neural_ev))
                 if ev and ev.get("error")] + state.failures + cmp.failures
@@ -270,6 +275,22 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future |
                 "stage_free": state.model_free_by_stage, "compensating": state.compensating(),
                 "tau_s": settings.identify.tau_s, "decimate": settings.identify.decimate},
     )
+
+
+def _stick_slip_held_out(gain: dict, findings: list[Finding], state: DiscoveryState,
+                         twins: dict) -> None:
+    """A stick-slip finding's gain on the controls in its own measure, the fast envelope
+    (``stickslip.held_out_envelopes``); a failure costs that entry only."""
+    controls = [state.base.prepared[s.id] for s in state.campaign.control_tests()]
+    try:
+        envelopes = held_out_envelopes(findings, controls, twins, state.model)
+    except Exception as exc:  # a report's measure must never sink the answer
+        log.warning("stick-slip envelope on the controls failed: %s", exc)
+        state.failures.append(f"stick-slip envelope on the controls: "
+                              f"{type(exc).__name__}: {exc}")
+        return
+    if envelopes:
+        gain["stick_slip_envelope_held_out"] = envelopes
 
 
 def _learned_gain(findings: list[Finding], table: pd.DataFrame) -> None:
