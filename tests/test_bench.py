@@ -227,6 +227,24 @@ def test_cli_rejects_bad_effect(fast_demo, tmp_path, capsys, bad):
     assert not out.exists()  # validated before anything is written
 
 
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--plan-jitter", "2"], "--plan-jitter must be in [0, 1)"),  # was a bare IndexError
+    (["--cogging-nm", "15"], "--cogging-nm must be in [-0.5, 0.5]"),  # N·m, not mN·m
+    (["--friction-drift", "1.5"], "--friction-drift must be in [0, 1)"),
+    (["--oversample", "0"], "--oversample must be in [1, 1000]"),
+    (["--realistic", "--torque-lag-s", "-0.003"], "--torque-lag-s must be in [0, 1)"),
+])
+def test_a_realism_flag_outside_what_it_means_is_refused_by_name(tmp_path, capsys, flags,
+                                                                 named):
+    """Each flag was taken as given: a 15 N·m cogging ran a 50-minute discovery on a rig
+    whose base model scored −4751 % control FIT, a plan jitter of 2 died in numpy."""
+    out = tmp_path / "out"
+    assert main(["bench", "--out", str(out), "--plan", "compact", *flags]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"mbst bench: error: {named}") and "Traceback" not in err
+    assert not out.exists()
+
+
 def test_a_random_input_is_band_limited_seeded_and_a_campaign(tmp_path):
     """campaign-format.md lists ``random`` among the input kinds and the bench refused it,
     so a campaign with such tests could not be re-run (``--tests-from``). A band-limited

@@ -40,7 +40,10 @@ def _bench_realism(args: argparse.Namespace):
     from mbst.systems.eps.realism import BenchRealism
 
     given = {f: getattr(args, f) for f in _REALISM_FLAGS if getattr(args, f) is not None}
-    return BenchRealism.realistic(**given) if args.realistic else BenchRealism(**given)
+    try:
+        return BenchRealism.realistic(**given) if args.realistic else BenchRealism(**given)
+    except ValueError as exc:  # a flag outside what it means: said before anything runs
+        raise UsageError(str(exc)) from None
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

@@ -89,6 +89,32 @@ SENSOR_QUANTUM = {
 TORQUE_SENSOR_LAG_S = 0.003
 
 
+# each reality's admissible values: (bound, inclusive?) low and high, and what it means;
+# outside them the bench would write a rig no one has, or fail deep inside with no word
+# of which flag (--plan-jitter 2 drew a negative frequency: a bare IndexError)
+_COGGING = PARAM_SPECS[PARAM_INDEX["motor.cogging_torque_nm"]]
+_LIMITS: dict[str, tuple[tuple[float, bool], tuple[float, bool], str]] = {
+    "known_error": ((0.0, True), (1.0, False), "a fraction of each known value"),
+    "known_sigma": ((0.0, True), (1.0, False), "a fraction of each known value"),
+    "noise_ar1": ((-1.0, False), (1.0, False), "the noise's AR(1) coefficient per sample"),
+    "torque_lag_s": ((0.0, True), (1.0, False), "the torque sensor's time constant in s"),
+    "offset_drift": ((0.0, True), (math.inf, False), "noise rms"),
+    "friction_drift": ((0.0, True), (1.0, False),
+                       "the fraction the Coulomb levels fall by: 1 would leave none"),
+    "cogging_nm": ((-_COGGING.upper, True), (_COGGING.upper, True),
+                   "N·m at the motor, the cogging parameter's range; production motors "
+                   "show a few mN·m"),
+    "cogging_order": ((1.0, True), (64.0, True), "periods per motor revolution"),
+    "rack_ratio_variation": ((-1.0, True), (1.0, True),
+                             "1/rad², the rack travel per pinion radian r·(1 + a·θ²)"),
+    "angle_eccentricity_deg": ((-10.0, True), (10.0, True), "degrees of angle error"),
+    "oversample": ((1.0, True), (1000.0, True), "integration steps per sample"),
+    "smoothing": ((0.0, False), (100.0, True), "times the regularisation velocities"),
+    "plan_jitter": ((0.0, True), (1.0, False), "a fraction of each test's amplitude and "
+                    "frequency"),
+}
+
+
 @dataclass(frozen=True)
 class BenchRealism:
     """What the bench does differently from identification (all off: the plain bench).
@@ -127,6 +153,16 @@ class BenchRealism:
     oversample: int = 1
     smoothing: float = 1.0
     plan_jitter: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, (low, high, meaning) in _LIMITS.items():
+            v = getattr(self, name)
+            if not (math.isfinite(v) and low[0] <= v <= high[0]) or \
+                    (not low[1] and v == low[0]) or (not high[1] and v == high[0]):
+                flag = "--" + name.replace("_", "-")
+                span = (f"{'[' if low[1] else '('}{low[0]:g}, "
+                        f"{high[0]:g}{']' if high[1] else ')'}")
+                raise ValueError(f"{flag} must be in {span} ({meaning}), got {v:g}")
 
     @classmethod
     def realistic(cls, **changes) -> BenchRealism:
