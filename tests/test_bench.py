@@ -233,6 +233,9 @@ def test_cli_rejects_bad_effect(fast_demo, tmp_path, capsys, bad):
     (["--friction-drift", "1.5"], "--friction-drift must be in [0, 1)"),
     (["--oversample", "0"], "--oversample must be in [1, 1000]"),
     (["--realistic", "--torque-lag-s", "-0.003"], "--torque-lag-s must be in [0, 1)"),
+    # a bare ZeroDivisionError; a campaign of NaN noise
+    (["--sample-rate-hz", "0"], "--sample-rate-hz must be a finite rate > 0 Hz"),
+    (["--noise-scale", "nan"], "--noise-scale must be a finite factor ≥ 0"),
 ])
 def test_a_realism_flag_outside_what_it_means_is_refused_by_name(tmp_path, capsys, flags,
                                                                  named):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -63,6 +64,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             parse_effect(e)
         except (KeyError, ValueError) as exc:
             raise UsageError(str(exc).strip("'\"")) from None
+    if not (math.isfinite(args.noise_scale) and args.noise_scale >= 0):
+        raise UsageError(f"--noise-scale must be a finite factor ≥ 0, got {args.noise_scale}")
+    if not (math.isfinite(args.sample_rate_hz) and args.sample_rate_hz > 0):
+        raise UsageError(f"--sample-rate-hz must be a finite rate > 0 Hz, got "
+                         f"{args.sample_rate_hz}")
     sensors = tuple(DEFAULT_SENSORS)
     if args.sensors:
         sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip())
