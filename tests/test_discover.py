@@ -382,6 +382,29 @@ def test_cli_discover_bad_campaign_writes_nothing(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.fixture(scope="module")
+def clean_compact(tmp_path_factory):
+    return run_bench(tmp_path_factory.mktemp("bench"),
+                     BenchRecipe(effects=[], seed=1, plan=compact_plan()))
+
+
+@pytest.mark.parametrize("command", [
+    ["discover", "--tau", "nan"],  # a bare ValueError from the optimiser's bounds
+    ["identify", "--tau", "inf"],
+    ["preprocess", "--tau", "-0.005"],
+    ["discover", "--multistart", "0"],  # identify refused it, discover ran
+    ["discover", "--min-aic-drop", "nan"],
+])
+def test_cli_settings_outside_what_they_mean_are_refused_by_name(clean_compact, tmp_path,
+                                                                  capsys, command):
+    camp_dir = clean_compact
+    out = tmp_path / "out"
+    assert main([command[0], str(camp_dir), "--out", str(out), "--quiet", *command[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"mbst {command[0]}: error: {command[1]} must be")
+    assert "Traceback" not in err and not out.exists()
+
+
 def test_confidence_weighs_candidates_with_one_sample_count():
     """A candidate removing 91 % of a stage's cost outweighs one removing 64 %.
 

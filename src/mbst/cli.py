@@ -90,13 +90,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_tau(tau_s: float) -> None:
+    """The filter's time constant: finite and ≥ 0 (NaN or inf reached the optimiser's
+    bounds as a bare ValueError)."""
+    if not (math.isfinite(tau_s) and tau_s >= 0):
+        raise UsageError(f"--tau must be a finite time constant ≥ 0 s, got {tau_s}")
+
+
 def _cmd_preprocess(args: argparse.Namespace) -> int:
     from mbst.io.campaign import read_campaign
     from mbst.report.preprocess import write_preprocessed
 
     camp = read_campaign(args.campaign)
-    if args.tau < 0:
-        raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
+    _check_tau(args.tau)
     _check_out(args.out, camp.path)
     out = write_preprocessed(camp, args.out, args.tau)
     if not args.quiet:
@@ -112,8 +118,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     camp = read_campaign(args.campaign)
     if args.multistart < 1:
         raise UsageError(f"--multistart must be at least 1, got {args.multistart}")
-    if args.tau < 0:
-        raise UsageError(f"--tau must be ≥ 0 s, got {args.tau}")
+    _check_tau(args.tau)
     settings = IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
                                 joint_refinement=args.joint, progress=not args.quiet)
     _check_out(args.out, camp.path)
@@ -130,11 +135,15 @@ def _cmd_discover(args: argparse.Namespace) -> int:
     from mbst.report.discovery import run_discover
 
     camp = read_campaign(args.campaign)
+    _check_tau(args.tau)
+    if args.multistart < 1:
+        raise UsageError(f"--multistart must be at least 1, got {args.multistart}")
     if args.max_effects < 0:
         raise UsageError(f"--max-effects must be ≥ 0, got {args.max_effects}")
     if not 0 < args.min_gain < 1:
         raise UsageError(f"--min-gain must be in (0, 1), got {args.min_gain}")
-    if args.min_aic_drop is not None and args.min_aic_drop < 0:
+    if args.min_aic_drop is not None and not (math.isfinite(args.min_aic_drop)
+                                              and args.min_aic_drop >= 0):
         raise UsageError(f"--min-aic-drop must be ≥ 0, got {args.min_aic_drop}")
     settings = DiscoverSettings(
         identify=IdentifySettings(tau_s=args.tau, seed=args.seed, multistart=args.multistart,
