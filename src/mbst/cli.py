@@ -286,7 +286,8 @@ def _add_realism_flags(p: argparse.ArgumentParser) -> None:
                    help="Coulomb levels fall by this fraction as the rig warms up (not a "
                    "catalogue effect)")
     g.add_argument("--cogging-nm", type=float, metavar="NM",
-                   help="motor cogging: a torque ripple of this amplitude (not a catalogue "
+                   help="motor cogging: a torque ripple of this amplitude in N·m at the "
+                   "motor, e.g. 0.004 (production motors show a few mN·m; not a catalogue "
                    "effect)")
     g.add_argument("--cogging-order", type=int, metavar="N",
                    help="the cogging's periods per motor revolution (default 18)")
