@@ -1196,9 +1196,10 @@ def test_a_refined_refit_takes_no_further_step_once_its_work_is_spent(monkeypatc
 
 
 def test_the_control_table_leaves_no_row_of_blanks_and_says_what_it_could_not_score():
-    """The demo's free-tie-rods control logs the tie-rod forces, which are constant there:
-    its rows read "nan | nan | nan" in every family. Such a channel is listed as not scored;
-    a family without a FIT in one cell shows a dash; the means are printed beneath."""
+    """The demo's free-tie-rods control does not log the tie-rod forces, yet the table's
+    pivot over tests × channels gave it their rows, "nan" in every family. The table keeps
+    the comparison's rows; a channel it has but no family scores (constant in its test) is
+    listed beneath; a family without a FIT in one cell shows a dash; the means follow."""
     from mbst.report.discovery import control_lines
 
     rows = [("s2", "steering_torque_nm", "base", 85.3), ("s2", "steering_torque_nm",

@@ -211,9 +211,9 @@ def markdown_summary(result: DiscoveryResult) -> str:
 
 
 def control_lines(comparison: pd.DataFrame) -> list[str]:
-    """The control FIT table: a dash where a family has no FIT, and a channel no family
-    has one for (constant in its test: free tie-rods carry no force) listed under it
-    instead of a row of blanks; the means the summary prints beneath."""
+    """The control FIT table, one row per test and channel the comparison has: a dash
+    where a family has no FIT, a channel no family has one for (constant in its test)
+    listed under it instead of a row of blanks, the means the summary prints beneath."""
     lines = ["", "## Control tests (held out): FIT %", ""]
     if comparison.empty:
         return lines + ["No control test: nothing held out to measure the gain on."]
@@ -235,9 +235,8 @@ def control_lines(comparison: pd.DataFrame) -> list[str]:
         f"{m} {means[m]:.1f} %" for m in models if np.isfinite(means[m])) + "."]
     blank = [f"{t} {ch}" for t, ch in wide.index[~scored.to_numpy()]]
     if blank:
-        lines.append(f"No FIT in any family (a channel constant in its test has none, as "
-                     f"the tie-rod forces with the tie-rods free; nor a twin that could not "
-                     f"be simulated): {', '.join(blank)}.")
+        lines.append(f"No FIT in any family (a channel constant in its test has none, nor "
+                     f"a twin that could not be simulated): {', '.join(blank)}.")
     return lines
 
 
