@@ -143,6 +143,7 @@ def test_bad_assist_entries_are_named(clean_assist, tmp_path, capsys):
     assert "assist_characteristic is 'pneumatic'" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # ~9 s; CI identifies the HPS curve from the motor current (next test)
 def test_hps_curve_is_identified(tmp_path):
     """Seed 001's HPS form c·sign(T)·(e^|T| − 1): one parameter per mode."""
     recipe = BenchRecipe(effects=[], plan=compact_assist_plan(), name="hps",

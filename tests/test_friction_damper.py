@@ -273,6 +273,7 @@ def test_clean_damper_gives_an_empty_answer(tmp_path):
     assert _discover(tmp_path, {}, seed=4).findings == []
 
 
+@pytest.mark.slow  # ~10 s; CI keeps the planted play and the clean damper
 def test_two_planted_effects_are_both_named_and_both_kept(tmp_path):
     """A play and an asymmetric level: named one after the other, and the backward check
     (each earlier effect taken out of the final model) keeps the first — it is needed."""

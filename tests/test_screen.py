@@ -82,6 +82,7 @@ def test_the_next_round_rescores_what_the_screen_passes_not_what_showed_evidence
     assert rec["screen"]["predicted_gain"]["presliding_hysteresis:motor"] == 0.001
 
 
+@pytest.mark.slow  # ~10 s; CI keeps the screen's own cases above
 def test_a_later_round_refits_the_effects_already_accepted_with_its_candidates(tmp_path):
     """A round-1 winner fitted without the effect still missing absorbs part of it
     (realistic rig 120: a rack asymmetry at 1.75 for a true 1.20 beside a 0.49° worm-gear
