@@ -747,4 +747,9 @@ def test_a_stick_slip_gain_on_the_controls_is_measured_in_its_envelope_where_fit
     assert row["base"] > MIN_BASE_MISFIT and row["extended"] < 0.2 * row["base"]
     text = " ".join(stick_slip_held_out_lines(out))
     assert f"base {row['base']:.1f}, extended {row['extended']:.1f}" in text
+    assert "does not carry over" not in text
+    # an extension that leaves more envelope misfit than the base is said to (rig 2102)
+    swapped = {"free_tie_rods": {**row, "base": row["extended"], "extended": row["base"]}}
+    assert "the Stribeck size fitted on the identification tests does not carry over" in \
+        " ".join(stick_slip_held_out_lines(swapped))
     assert held_out_envelopes([output_error], [ctrl, other], twins, model) == {}

@@ -17,7 +17,7 @@ from mbst.discovery.pipeline import FORMAT, DiscoverSettings, DiscoveryResult, d
 from mbst.discovery.residuals import dominant_regions
 from mbst.discovery.rivals import label
 from mbst.discovery.rounds.resolution import Resolution
-from mbst.discovery.rounds.stickslip import MIN_BASE_MISFIT
+from mbst.discovery.rounds.stickslip import HELD_OUT_FAMILIES, MIN_BASE_MISFIT
 from mbst.discovery.rounds.unexplained import signature_record
 from mbst.discovery.signature import ChannelSignature
 from mbst.io.campaign import Campaign
@@ -245,8 +245,7 @@ def stick_slip_held_out_lines(envelopes: dict[str, dict]) -> list[str]:
     beside the FIT that cannot show it."""
     lines = []
     for stage, row in envelopes.items():
-        values = ", ".join(f"{m} {row[m]:.1f}" for m in ("base", "extended", "true")
-                           if m in row)
+        values = ", ".join(f"{m} {row[m]:.1f}" for m in HELD_OUT_FAMILIES if m in row)
         if not values:
             continue
         worse = ("; the extension leaves more of it than the base: the Stribeck size fitted "

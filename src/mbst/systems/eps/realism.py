@@ -155,14 +155,14 @@ class BenchRealism:
     plan_jitter: float = 0.0
 
     def __post_init__(self) -> None:
-        for name, (low, high, meaning) in _LIMITS.items():
+        for name, ((lo, lo_in), (hi, hi_in), meaning) in _LIMITS.items():
             v = getattr(self, name)
-            if not (math.isfinite(v) and low[0] <= v <= high[0]) or \
-                    (not low[1] and v == low[0]) or (not high[1] and v == high[0]):
-                flag = "--" + name.replace("_", "-")
-                span = (f"{'[' if low[1] else '('}{low[0]:g}, "
-                        f"{high[0]:g}{']' if high[1] else ')'}")
-                raise ValueError(f"{flag} must be in {span} ({meaning}), got {v:g}")
+            above = v >= lo if lo_in else v > lo
+            below = v <= hi if hi_in else v < hi
+            if not (math.isfinite(v) and above and below):
+                span = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
+                raise ValueError(f"--{name.replace('_', '-')} must be in {span} ({meaning}), "
+                                 f"got {v:g}")
 
     @classmethod
     def realistic(cls, **changes) -> BenchRealism:
