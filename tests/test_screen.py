@@ -17,6 +17,7 @@ from mbst.discovery.state import DiscoverSettings
 from mbst.discovery.structure import CandidateScore, StageScorer
 from mbst.identify.fitting import channel_scales, prepare_test
 from mbst.io.campaign import read_campaign
+from mbst.report.discovery import screened_out_lines
 from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
 from mbst.systems.eps.model import EPS_MODEL
 
@@ -80,6 +81,34 @@ def test_the_next_round_rescores_what_the_screen_passes_not_what_showed_evidence
     nxt = catalogue._next_candidates(state, last, rec)
     assert nxt.shortlist == {"position_dependent_friction:rack"}
     assert rec["screen"]["predicted_gain"]["presliding_hysteresis:motor"] == 0.001
+
+
+def test_the_first_round_refits_what_the_screen_puts_above_a_tenth_of_the_margin(monkeypatch):
+    """The first round's screen spares the refits of candidates predicted to remove almost
+    nothing; it asks a fifth of the later rounds' share, as the first-order estimate
+    undershoots most against a base that lacks the effect. A screen that fails costs the
+    saving only: every candidate is refitted, and the failure is said."""
+    needed = catalogue.FIRST_ROUND_SHARE_OF_MARGIN * 0.10
+    verdict = [ScreenScore("backlash:worm_gear", STAGE, 0.9, {}),
+               ScreenScore("stribeck_friction:rack", STAGE, needed * 1.1, {}),
+               ScreenScore("power_law_damping:motor", STAGE, needed * 0.9, {})]
+    monkeypatch.setattr(catalogue, "screen", lambda state, scores, make, scorers: verdict)
+    state = SimpleNamespace(settings=DiscoverSettings(), failures=[])
+    nxt, record = catalogue._first_round(state)
+    assert nxt.shortlist == {"backlash:worm_gear", "stribeck_friction:rack"}
+    assert record["needed"] == pytest.approx(needed)
+    assert record["predicted_gain"]["power_law_damping:motor"] == round(needed * 0.9, 5)
+    rnd = {"round": 1, "shortlist_screen": record,
+           "candidates": [{"key": "backlash:worm_gear"}, {"key": "stribeck_friction:rack"}]}
+    line = " ".join(screened_out_lines([rnd]))
+    assert "refitted 2 of 3 candidates" in line and "power_law_damping:motor" in line
+
+    def broken(state, scores, make, scorers):
+        raise FloatingPointError("a stage twin diverged")
+
+    monkeypatch.setattr(catalogue, "screen", broken)
+    assert catalogue._first_round(state) == (None, None)
+    assert "round 1 screen: FloatingPointError" in state.failures[-1]
 
 
 @pytest.mark.slow  # ~10 s; CI keeps the screen's own cases above

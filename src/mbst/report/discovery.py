@@ -196,6 +196,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
             lines += ["", f"{r['reason'][0].upper()}{r['reason'][1:]}."]
         elif r.get("reason"):
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
+    lines += screened_out_lines(result.rounds)
     lines += untested_lines(result.rounds)
     lines += signature_lines(result)
     if result.resolution:
@@ -510,6 +511,25 @@ def run_discover(campaign: Campaign, out_dir: str | Path,
     with atomic_output_dir(out_dir) as tmp:
         write_discover_outputs(result, tmp)
     return result
+
+
+def screened_out_lines(rounds: list[dict]) -> list[str]:
+    """Which candidates the first round did not refit: the screen's prediction for them."""
+    first = next((r for r in rounds if r.get("shortlist_screen")), None)
+    if first is None:
+        return []
+    screen = first["shortlist_screen"]
+    refitted = {c["key"] for c in first.get("candidates", [])}
+    out = sorted(((g, k) for k, g in screen["predicted_gain"].items() if k not in refitted),
+                 reverse=True)
+    if not out:
+        return []
+    g, k = out[0]
+    return ["", f"Round {first['round']} refitted {len(screen['predicted_gain']) - len(out)} "
+                f"of {len(screen['predicted_gain'])} candidates: the linearised screen "
+                f"(`rounds/screen.py`) predicted that each of the other {len(out)} would "
+                f"remove less than {100 * screen['needed']:.0f} % of its stage (the most: "
+                f"{k}, {100 * g:.2f} %)."]
 
 
 def untested_lines(rounds: list[dict]) -> list[str]:
