@@ -103,7 +103,8 @@ def structure_bars(result, path: Path) -> None:
         ax.axvline(100 * margin, color="tab:red", ls="--", lw=1, label="acceptance margin")
         ax.set_xlabel({"stick_slip": "fast-envelope misfit removed in its stage [%]",
                        "equation_error": "inverse-model (equation-error) cost removed [%]"
-                       }.get(method, "residual cost removed in its stage [%]"), fontsize=8)
+                       }.get(method, "residual cost removed in its stage [%]")
+                      + _screened_out_note(r), fontsize=8)
         acc = r["accepted"] or "none"
         kind = {"stick_slip": " (stick-slip test)",
                 "equation_error": " (equation-error test)"}.get(method, "")
@@ -449,3 +450,14 @@ def _neural_learned(result, path: Path) -> None:
     from mbst.discovery.evidence.neural import plot_learned
 
     plot_learned(result.neural_model, result.residual_tests, path)
+
+
+def _screened_out_note(rnd: dict) -> str:
+    """A second axis line for the candidates the round's screen spared a refit."""
+    screen = rnd.get("shortlist_screen")
+    if not screen:
+        return ""
+    refitted = {c["key"] for c in rnd["candidates"]}
+    spared = [k for k in screen["predicted_gain"] if k not in refitted]
+    return (f"\n{len(spared)} more not refitted: the screen predicted each below "
+            f"{100 * screen['needed']:.0f} % (discovery.md)" if spared else "")
