@@ -91,7 +91,8 @@ def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
         rec["reason"] = (
             "no candidate can act in the scenarios tested" if shortlist is None else
             f"no candidate that the screen says could remove {100 * first_screen['needed']:.0f} "
-            "% of its stage" if first_screen is not None else
+            "% of its stage: the residual is at the noise floor of the catalogue"
+            if first_screen is not None else
             "no candidate that the screen says could explain the evidence share of what is left")
         return None
     scores, lags = _past_rivals(state, scorers, scores, rec)
