@@ -102,6 +102,9 @@ def test_the_first_round_refits_what_the_screen_puts_above_a_tenth_of_the_margin
            "candidates": [{"key": "backlash:worm_gear"}, {"key": "stribeck_friction:rack"}]}
     line = " ".join(screened_out_lines([rnd]))
     assert "refitted 2 of 3 candidates" in line and "power_law_damping:motor" in line
+    # a first round the screen leaves nothing to refit is at the catalogue's noise floor
+    assert "noise floor" in catalogue._nothing_to_refit(set(), record)
+    assert "can act" in catalogue._nothing_to_refit(set(), {**record, "predicted_gain": {}})
 
     def broken(state, scores, make, scorers):
         raise FloatingPointError("a stage twin diverged")
