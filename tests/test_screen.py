@@ -114,6 +114,33 @@ def test_the_first_round_refits_what_the_screen_puts_above_a_tenth_of_the_margin
     assert "round 1 screen: FloatingPointError" in state.failures[-1]
 
 
+def test_the_first_rounds_shortlist_and_its_scorers_reach_the_refits(monkeypatch):
+    """The round refits the screen's shortlist with the stage scorers the screen built
+    (their base refits done), not the whole catalogue, and keeps the screen's record."""
+    record = {"predicted_gain": {"backlash:worm_gear": 0.2, "power_law_damping:motor": 0.0},
+              "needed": 0.01, "wall_s": 1.0}
+    built = {STAGE: object()}
+    monkeypatch.setattr(catalogue, "_first_round",
+                        lambda state: (catalogue.NextRound({"backlash:worm_gear"}, built),
+                                       record))
+    asked = []
+
+    def refits(state, rnd, shortlist, bar, scorers):
+        asked.append((shortlist, dict(scorers)))
+        return []
+
+    monkeypatch.setattr(catalogue, "_screen", refits)
+    state = SimpleNamespace(settings=DiscoverSettings(), rounds=[])
+    assert catalogue._one_round(state, 0, None, None) is None
+    assert asked == [({"backlash:worm_gear"}, built)]
+    assert state.rounds[0]["shortlist_screen"] is record
+    assert "noise floor" in state.rounds[0]["reason"]
+    # a screen that failed leaves the round the whole catalogue
+    monkeypatch.setattr(catalogue, "_first_round", lambda state: (None, None))
+    catalogue._one_round(state, 0, None, None)
+    assert asked[-1] == (None, {}) and "shortlist_screen" not in state.rounds[-1]
+
+
 @pytest.mark.slow  # ~10 s; CI keeps the screen's own cases above
 def test_a_later_round_refits_the_effects_already_accepted_with_its_candidates(tmp_path):
     """A round-1 winner fitted without the effect still missing absorbs part of it
