@@ -189,3 +189,36 @@ def test_plot_learned_writes_a_png(backlash, backlash_model, tmp_path):
     plot_learned(backlash_model, backlash, path)
     assert path.stat().st_size > 20_000
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+
+@pytest.mark.slow  # ~35 s (a spawned interpreter imports torch); CI's pipeline runs it
+def test_the_network_trains_in_a_process_of_its_own_to_the_same_model(clean):
+    """Beside the structure test the network trains in a spawned process (no interpreter
+    lock shared with the refits), to the same model as here."""
+    from mbst.discovery.evidence.collect import NeuralJob, neural_evidence
+    from mbst.discovery.state import DiscoverSettings
+
+    ident = [t for t in clean if t.role == "identification"][:2]  # small: a wiring test
+    settings = DiscoverSettings(neural_iterations=2)
+    model, ev = NeuralJob(ident, settings, EpsCandidateLibrary).result()
+    here, ev_here = neural_evidence(ident, settings, EpsCandidateLibrary)
+    assert model.loss_history == here.loss_history and model.gains == here.gains
+    assert ev["ranking"] == ev_here["ranking"]
+
+
+def test_the_network_trains_in_a_thread_where_no_process_can_take_it(monkeypatch, caplog):
+    """Where the process cannot take the job (here: a training function that cannot be
+    pickled; a calling script without the main guard, memory) it trains in a thread and
+    the log says so: the evidence is never lost to the process."""
+    from mbst.discovery.evidence import collect
+
+    def train(id_res, settings, library):  # local: a spawned process cannot import it
+        return "model", {"ranking": [["backlash:worm_gear", 1.0]], "of": id_res}
+
+    monkeypatch.setattr(collect, "neural_evidence", train)
+    with caplog.at_level("WARNING"):
+        job = collect.NeuralJob(["t1"], collect.DiscoverSettings(), EpsCandidateLibrary)
+        assert job.result() == ("model", {"ranking": [["backlash:worm_gear", 1.0]],
+                                          "of": ["t1"]})
+    assert "trained in a thread" in caplog.text

@@ -22,7 +22,6 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -33,7 +32,7 @@ import pandas as pd
 from mbst.discovery.acceptance import fold_one_body
 from mbst.discovery.compare import Learned, compare, mean_gain
 from mbst.discovery.data import TestResidual, residual_data
-from mbst.discovery.evidence.collect import neural_evidence, sparse_evidence
+from mbst.discovery.evidence.collect import NeuralJob, sparse_evidence
 from mbst.discovery.evidence.hybrid import neural_correction
 from mbst.discovery.lumped import state_body_sizes
 from mbst.discovery.residuals import dominant_regions, residual_locations
@@ -174,20 +173,17 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None,
     # body at the typical values (``acceptance.parts_speed_correlation``)
     state.measure_typical_speeds("catalogue rounds")
     # the network needs only the base residuals: it trains on one torch thread beside
-    # the structure test, which leaves the second core idle between its refits
-    pool = neural_job = None
-    if settings.wants(base.model, "neural"):
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mbst-neural")
-        neural_job = pool.submit(neural_evidence, id_res, settings,
-                                 base.model.candidate_library)
+    # the structure test, in a process of its own (``NeuralJob``)
+    neural_job = NeuralJob(id_res, settings, base.model.candidate_library) \
+        if settings.wants(base.model, "neural") else None
     try:
         for name in base.model.discovery_rounds:
             if settings.wants(base.model, name):
                 ROUNDS[name](state)
         return _conclude(state, locations, neural_job, t_start)
     finally:
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+        if neural_job is not None:
+            neural_job.close()
 
 
 def _base_model(campaign: Campaign, settings: DiscoverSettings, base_fit: dict | None
@@ -215,7 +211,7 @@ def _named(state: DiscoveryState, sparse_ev: dict | None, neural_ev: dict | None
     return findings
 
 
-def _conclude(state: DiscoveryState, locations: list[dict], neural_job: Future | None,
+def _conclude(state: DiscoveryState, locations: list[dict], neural_job: NeuralJob | None,
               t_start: float) -> DiscoveryResult:
     """Evidence in, findings named, model families compared on the held-out controls."""
     settings, model, timings = state.settings, state.model, state.timings
