@@ -334,6 +334,8 @@ def test_a_pair_the_last_rounds_screen_spared_is_checked_against_its_earlier_ref
     share, aic = rf.now(510.0, 500.0, 1)
     assert share == pytest.approx(39.0 / 510.0)
     assert aic == pytest.approx(aic_delta(510.0 - 39.0, 510.0, 500.0, 1))
+    # a stage the accepted effects left alone (its cost now above the refit's) keeps it
+    assert rf.now(1200.0, 500.0, 1)[0] == pytest.approx(0.039)
     # a refit of the last round itself is taken as it is
     third = {"round": 3, "candidates": [{**load, "relative_gain": 0.2}], "accepted": None}
     assert last_round_refits([first, second, third], EPS_MODEL)[load["key"]].now(

@@ -96,11 +96,14 @@ class Refit:
     def now(self, cost: float, n_eff: float, k: int) -> tuple[float, float]:
         """Its share and ΔAIC against the stage's ``cost`` at the model the step predicts
         from: an earlier round's refit removed the same cost from a larger residual (the
-        effects accepted since were still in it), so its share there undersells it."""
+        effects accepted since were still in it), so its share there undersells it. Never
+        less than it was: a stage the accepted effects left alone keeps its refit's share
+        (the cost at the cascade's fit can lie above the stage's own refit)."""
         if self.round is None or not self.stage_cost or cost <= 0:
             return self.share, self.aic_delta
-        removed = min(self.share * self.stage_cost, cost)
-        return removed / cost, aic_delta(cost - removed, cost, n_eff, k)
+        base = min(cost, self.stage_cost)
+        removed = min(self.share * self.stage_cost, base)
+        return removed / base, aic_delta(base - removed, base, n_eff, k)
 
 
 @dataclass
