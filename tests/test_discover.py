@@ -304,10 +304,9 @@ def test_the_refits_checked_are_those_scored_on_the_model_the_step_predicts_from
 
 def test_a_pair_the_last_rounds_screen_spared_is_checked_against_its_earlier_refit():
     """Where the last round's screen refitted a pair no more, its latest earlier refit
-    checks the prediction, its gain carried to the model as it stands: the same cost
-    removed from the smaller residual left once the effect accepted since is in (realistic
-    rig 2301: a present rack load-dependent friction refitted in round 1 at 3.9 % was
-    stated resolved from 0.024 after round 2 refitted nothing)."""
+    checks the prediction, at its share of the residual it was refitted against
+    (realistic rig 2301: a present rack load-dependent friction refitted in round 1 at
+    3.9 % was stated resolved from 0.024 after round 2 refitted nothing)."""
     from mbst.discovery.rounds.resolution import (
         RefitCheck,
         Resolution,
@@ -315,41 +314,29 @@ def test_a_pair_the_last_rounds_screen_spared_is_checked_against_its_earlier_ref
         judge_refit,
         last_round_refits,
     )
-    from mbst.discovery.structure import aic_delta
+    from mbst.report.discovery import limit_text
 
     load = {"key": "load_dependent_friction:rack", "relative_gain": 0.039, "aic_delta": -21.4,
-            "n_eff": 500.0, "cost_base": 1000.0, "fell_back": False,
-            "headline": {"coefficient": 0.079}}
+            "fell_back": False, "headline": {"coefficient": 0.079}}
     gap = {**load, "key": "backlash:worm_gear", "relative_gain": 0.49,
            "headline": {"width_rad": 0.008}}
-    old = {**load, "key": "stribeck_friction:rack", "cost_base": None,
-           "headline": {"static_to_coulomb_ratio": 1.3}}  # a record from before the field
-    first = {"round": 1, "candidates": [gap, load, old], "accepted": "backlash:worm_gear"}
+    first = {"round": 1, "candidates": [gap, load], "accepted": "backlash:worm_gear"}
     second = {"round": 2, "candidates": [], "accepted": None}
-    refits = last_round_refits([first, second], EPS_MODEL)
-    rf = refits["load_dependent_friction:rack"]
-    assert (rf.round, rf.stage_cost) == (1, 1000.0)
-    assert "stribeck_friction:rack" not in refits
-    # round 1 removed 39 of 1000; the stage's cost now is 510: 7.6 % of it, below the margin
-    share, aic = rf.now(510.0, 500.0, 1)
-    assert share == pytest.approx(39.0 / 510.0)
-    assert aic == pytest.approx(aic_delta(510.0 - 39.0, 510.0, 500.0, 1))
-    # a stage the accepted effects left alone (its cost now above the refit's) keeps it
-    assert rf.now(1200.0, 500.0, 1)[0] == pytest.approx(0.039)
-    # a refit of the last round itself is taken as it is
-    third = {"round": 3, "candidates": [{**load, "relative_gain": 0.2}], "accepted": None}
-    assert last_round_refits([first, second, third], EPS_MODEL)[load["key"]].now(
-        510.0, 500.0, 1) == (0.2, -21.4)
-    # the prediction at that size clears the margins, the refit does not: no limit stated
+    rf = last_round_refits([first, second], EPS_MODEL)["load_dependent_friction:rack"]
+    assert (rf.round, rf.share, rf.aic_delta) == (1, 0.039, -21.4)
+    # the last round's own refit of the pair comes first
+    third = {"round": 3, "candidates": [{**load, "relative_gain": 0.02}], "accepted": None}
+    rf3 = last_round_refits([first, second, third], EPS_MODEL)[load["key"]]
+    assert (rf3.round, rf3.share) == (None, 0.02)
+    # the prediction at that size clears the margins, the refit did not: no limit stated
     r = Resolution(load["key"], "load_dependent_friction", "rack", "free_tie_rods",
                    ["coefficient"], sizes=[SizeScore(0.3, {"coefficient": 0.024}, 0.16, -48)],
                    resolved_from=0.3)
-    r.refit = RefitCheck(SizeScore(0.99, {"coefficient": 0.079}, 0.71, -355), share, aic,
-                         False, rf.round)
+    r.refit = RefitCheck(SizeScore(0.99, {"coefficient": 0.079}, 0.71, -355), rf.share,
+                         rf.aic_delta, False, rf.round)
     judge_refit(r, 0.10, 10.4)
     assert r.refit.contradicts and r.resolved_from is None
     assert r.refit.record()["refit_round"] == 1
-    from mbst.report.discovery import limit_text
     assert "refit in round 1" in limit_text(r, False)
 
 

@@ -386,7 +386,7 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     c = r.refit
     if c is not None and c.contradicts and c.other_side == other_side:
         when = "" if c.round is None else f" in round {c.round} (the later rounds' screen " \
-            "spared it; its gain carried to the model as it stands)"
+            "spared it)"
         return (f"**no limit stated**: the structure test's refit{when} reached "
                 f"{size_text(c.predicted, r.size_parameters)} and removed "
                 f"{100 * c.refit_share:.1f} % of its stage (ΔAIC {c.refit_aic_delta:.0f}), where "

@@ -88,22 +88,9 @@ class Refit:
     values: dict[str, float]
     share: float
     aic_delta: float
-    # an earlier round's refit (the last round's screen spared this pair), with the stage's
-    # cost it was a share of: its share is carried to the model the step predicts from
+    # an earlier round's refit (the last round's screen spared this pair); its share is of
+    # that round's stage cost
     round: int | None = None
-    stage_cost: float | None = None
-
-    def now(self, cost: float, n_eff: float, k: int) -> tuple[float, float]:
-        """Its share and ΔAIC against the stage's ``cost`` at the model the step predicts
-        from: an earlier round's refit removed the same cost from a larger residual (the
-        effects accepted since were still in it), so its share there undersells it. Never
-        less than it was: a stage the accepted effects left alone keeps its refit's share
-        (the cost at the cascade's fit can lie above the stage's own refit)."""
-        if self.round is None or not self.stage_cost or cost <= 0:
-            return self.share, self.aic_delta
-        base = min(cost, self.stage_cost)
-        removed = min(self.share * self.stage_cost, base)
-        return removed / base, aic_delta(base - removed, base, n_eff, k)
 
 
 @dataclass
@@ -318,8 +305,7 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
             rf = refits[spec.key]
             other_side = _on_other_side(spec, model, rf.values)
             size.multiple = size_multiple(spec, model, rf.values, other_side)
-            res.refit = RefitCheck(size, *rf.now(cost, n_eff, len(spec.free)), other_side,
-                                   rf.round)
+            res.refit = RefitCheck(size, rf.share, rf.aic_delta, other_side, rf.round)
         else:
             (res.other_side if other else res.sizes).append(size)
     return list(out.values())
@@ -442,26 +428,27 @@ def last_round_refits(rounds: list[dict], model: ModelDefinition) -> dict[str, R
     """What the last structure round's refits reached, where they were scored on the model
     the step predicts from: that round accepted nothing and no backward check dropped an
     effect after it. A pair that round's screen spared has its latest earlier refit, its
-    share carried to the model the step predicts from (``Refit.now``): a realistic rig
-    (seed 2301) with a 0.40° worm-gear backlash and a rack load-dependent friction of
-    0.078 named the backlash; round 1 had refitted the friction to 0.079 at 3.9 % of its
-    stage, round 2's screen refitted nothing, and the step stated the friction resolved
-    from 0.024. Candidates whose refit fell back above their base were not tested."""
+    share that of the residual it was refitted against (a realistic rig, seed 2301, with a
+    0.40° worm-gear backlash and a rack load-dependent friction of 0.078 named the
+    backlash; round 1 had refitted the friction to 0.079 at 3.9 % of its stage, round 2's
+    screen refitted nothing, and the step stated the friction resolved from 0.024).
+    Carried to the smaller residual left now, that share would also count what the
+    earlier refit took of an effect accepted since: a gap refitted to 40 % of a stage
+    whose presliding was named next would read 100 %. A pair the screen spared
+    could not remove the evidence share of what is left, so its earlier share is the
+    better guide. Candidates whose refit fell back above their base were not tested."""
     structure = [r for r in rounds if "kind" not in r and "method" not in r]
     if not structure or structure[-1].get("accepted") is not None or any(
             r.get("dropped") for r in rounds if r.get("kind") == "backward"):
         return {}
     out: dict[str, Refit] = {}
     for rec in reversed(structure):
-        last = rec is structure[-1]
         for c in rec.get("candidates", []):
             spec = model.effects.get(c.get("key"))
-            if spec is None or spec.key in out or c.get("fell_back") or not c.get("headline") \
-                    or not (last or c.get("cost_base")):
+            if spec is None or spec.key in out or c.get("fell_back") or not c.get("headline"):
                 continue
             out[spec.key] = Refit({spec.headline[h]: float(v) for h, v in c["headline"].items()
                                    if h in spec.headline},
                                   float(c["relative_gain"]), float(c["aic_delta"]),
-                                  None if last else int(rec["round"]),
-                                  None if last else float(c["cost_base"]))
+                                  None if rec is structure[-1] else int(rec["round"]))
     return out
