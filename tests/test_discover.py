@@ -304,9 +304,11 @@ def test_the_refits_checked_are_those_scored_on_the_model_the_step_predicts_from
 
 def test_a_pair_the_last_rounds_screen_spared_is_checked_against_its_earlier_refit():
     """Where the last round's screen refitted a pair no more, its latest earlier refit
-    checks the prediction, at its share of the residual it was refitted against
-    (realistic rig 2301: a present rack load-dependent friction refitted in round 1 at
-    3.9 % was stated resolved from 0.024 after round 2 refitted nothing)."""
+    checks the prediction (realistic rig 2301: a present rack load-dependent friction
+    refitted in round 1 at 3.9 % was stated resolved from 0.024 after round 2 refitted
+    nothing). It passes where it cleared the margins in its own round or with the cost it
+    removed carried to what is left now (the demo's rack power law: 0.56 % of a stage the
+    backlash then cut to 2.8 %)."""
     from mbst.discovery.rounds.resolution import (
         RefitCheck,
         Resolution,
@@ -314,30 +316,46 @@ def test_a_pair_the_last_rounds_screen_spared_is_checked_against_its_earlier_ref
         judge_refit,
         last_round_refits,
     )
+    from mbst.discovery.structure import aic_delta
     from mbst.report.discovery import limit_text
 
     load = {"key": "load_dependent_friction:rack", "relative_gain": 0.039, "aic_delta": -21.4,
-            "fell_back": False, "headline": {"coefficient": 0.079}}
+            "cost_base": 1000.0, "fell_back": False, "headline": {"coefficient": 0.079}}
     gap = {**load, "key": "backlash:worm_gear", "relative_gain": 0.49,
            "headline": {"width_rad": 0.008}}
     first = {"round": 1, "candidates": [gap, load], "accepted": "backlash:worm_gear"}
     second = {"round": 2, "candidates": [], "accepted": None}
     rf = last_round_refits([first, second], EPS_MODEL)["load_dependent_friction:rack"]
-    assert (rf.round, rf.share, rf.aic_delta) == (1, 0.039, -21.4)
-    # the last round's own refit of the pair comes first
+    assert (rf.round, rf.share, rf.aic_delta, rf.stage_cost) == (1, 0.039, -21.4, 1000.0)
+    # 39 of the 1000 it was refitted against; 510 are left now: 7.6 %
+    share, aic = rf.carried(510.0, 500.0, 1)
+    assert share == pytest.approx(39.0 / 510.0)
+    assert aic == pytest.approx(aic_delta(471.0, 510.0, 500.0, 1))
+    # the last round's own refit of the pair comes first, taken as it is
     third = {"round": 3, "candidates": [{**load, "relative_gain": 0.02}], "accepted": None}
     rf3 = last_round_refits([first, second, third], EPS_MODEL)[load["key"]]
-    assert (rf3.round, rf3.share) == (None, 0.02)
-    # the prediction at that size clears the margins, the refit did not: no limit stated
-    r = Resolution(load["key"], "load_dependent_friction", "rack", "free_tie_rods",
-                   ["coefficient"], sizes=[SizeScore(0.3, {"coefficient": 0.024}, 0.16, -48)],
-                   resolved_from=0.3)
-    r.refit = RefitCheck(SizeScore(0.99, {"coefficient": 0.079}, 0.71, -355), rf.share,
-                         rf.aic_delta, False, rf.round)
-    judge_refit(r, 0.10, 10.4)
+    assert (rf3.round, rf3.share, rf3.carried(510.0, 500.0, 1)) == (None, 0.02, None)
+
+    def judged(carried_to: float) -> Resolution:
+        r = Resolution(load["key"], "load_dependent_friction", "rack", "free_tie_rods",
+                       ["coefficient"],
+                       sizes=[SizeScore(0.3, {"coefficient": 0.024}, 0.16, -48)],
+                       resolved_from=0.3)
+        r.refit = RefitCheck(SizeScore(0.99, {"coefficient": 0.079}, 0.71, -355), rf.share,
+                             rf.aic_delta, False, rf.round, rf.carried(carried_to, 500.0, 1))
+        judge_refit(r, 0.10, 10.4)
+        return r
+
+    # the prediction at that size clears the margins, the refit on neither reading: no
+    # limit stated
+    r = judged(510.0)
     assert r.refit.contradicts and r.resolved_from is None
     assert r.refit.record()["refit_round"] == 1
-    assert "refit in round 1" in limit_text(r, False)
+    assert "refit in round 1" in limit_text(r, False) and "7.6 % of what is left now" in \
+        limit_text(r, False)
+    # carried to a residual cut to a tenth, it clears: the limit stands
+    r = judged(100.0)
+    assert not r.refit.contradicts and r.resolved_from == 0.3
 
 
 def test_effect_sizes_scale_from_the_neutral_value():

@@ -387,9 +387,11 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     if c is not None and c.contradicts and c.other_side == other_side:
         when = "" if c.round is None else f" in round {c.round} (the later rounds' screen " \
             "spared it)"
+        now = "" if c.carried is None else f"; {100 * c.carried[0]:.1f} % of what is left now"
         return (f"**no limit stated**: the structure test's refit{when} reached "
                 f"{size_text(c.predicted, r.size_parameters)} and removed "
-                f"{100 * c.refit_share:.1f} % of its stage (ΔAIC {c.refit_aic_delta:.0f}), where "
+                f"{100 * c.refit_share:.1f} % of its stage (ΔAIC {c.refit_aic_delta:.0f}{now}), "
+                "where "
                 f"this prediction says {100 * c.predicted.share:.1f} % at that size: these "
                 "tests' output error does not reach the effect as predicted, so they do not "
                 "rule it out at any size")

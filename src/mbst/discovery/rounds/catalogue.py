@@ -469,7 +469,8 @@ def score_record(s: CandidateScore) -> dict:
     """One row of ``structure_test.csv``."""
     return {"key": s.key, "effect": s.effect, "component": s.component, "stage": s.stage,
             "relative_gain": round(s.relative_gain, 5), "aic_delta": round(s.aic_delta, 2),
-            "n_eff": round(s.n_eff, 1), "headline": s.headline, "wall_s": round(s.wall_s, 2),
+            "n_eff": round(s.n_eff, 1), "cost_base": s.cost_base, "headline": s.headline,
+            "wall_s": round(s.wall_s, 2),
             "fell_back": s.fell_back, "optimizer_status": s.status,
             "diverged_evaluations": s.n_diverged, "work_spent": s.work_spent,
             "seeded_from": s.seeded_from}
