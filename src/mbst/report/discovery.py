@@ -23,6 +23,7 @@ from mbst.discovery.signature import ChannelSignature
 from mbst.io.campaign import Campaign
 from mbst.io.outputs import atomic_output_dir, write_json, write_markdown
 from mbst.report import discovery_figures as figures
+from mbst.report.bounds import bound_lines, parameters_on_bounds
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +43,13 @@ def _model_params(p: np.ndarray, effects: list[str], model: ModelDefinition
     active = {n for k in effects for n in model.effects[k].free}
     return {s.name: float(p[i]) for i, s in enumerate(model.param_specs)
             if s.kind in ("base", "offset", "known") or s.name in active}
+
+
+def _bound_rows(result: DiscoveryResult) -> list[dict]:
+    free = [n for names in (result.stages or {}).get("stage_free", {}).values() for n in names]
+    return parameters_on_bounds(result.base.model, free, result.base.params,
+                                result.extended_params,
+                                (getattr(result.base, "preid", None) or {}).get("upper"))
 
 
 def discovery_record(result: DiscoveryResult) -> dict:
@@ -72,6 +80,7 @@ def discovery_record(result: DiscoveryResult) -> dict:
             for m, v in result.comparison.groupby("model", sort=False)["fit_percent"].mean().items()
         },
         "resolution": [r.record() for r in result.resolution],
+        "parameters_on_bounds": _bound_rows(result),
         # what `mbst plan --resolve` designs the next tests with
         "stages": result.stages,
         # what the extended model's residual correlates with, channel by channel
@@ -198,6 +207,8 @@ def markdown_summary(result: DiscoveryResult) -> str:
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
     lines += screened_out_lines(result.rounds)
     lines += untested_lines(result.rounds)
+    lines += bound_lines(_bound_rows(result),
+                         not np.array_equal(result.extended_params, result.base.params))
     lines += signature_lines(result)
     if result.resolution:
         lines += resolution_lines(result)
