@@ -46,10 +46,19 @@ def _model_params(p: np.ndarray, effects: list[str], model: ModelDefinition
 
 
 def _bound_rows(result: DiscoveryResult) -> list[dict]:
-    free = [n for names in (result.stages or {}).get("stage_free", {}).values() for n in names]
+    stage_free = (getattr(result, "stages", None) or {}).get("stage_free", {})
+    if not stage_free:
+        return []
+    free = [n for names in stage_free.values() for n in names]
     return parameters_on_bounds(result.base.model, free, result.base.params,
                                 result.extended_params,
                                 (getattr(result.base, "preid", None) or {}).get("upper"))
+
+
+def _bound_section(result: DiscoveryResult) -> list[str]:
+    rows = _bound_rows(result)
+    return bound_lines(rows, not np.array_equal(result.extended_params, result.base.params)) \
+        if rows else []
 
 
 def discovery_record(result: DiscoveryResult) -> dict:
@@ -207,8 +216,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
             lines += ["", f"Round {r['round']} stopped: {r['reason']}."]
     lines += screened_out_lines(result.rounds)
     lines += untested_lines(result.rounds)
-    lines += bound_lines(_bound_rows(result),
-                         not np.array_equal(result.extended_params, result.base.params))
+    lines += _bound_section(result)
     lines += signature_lines(result)
     if result.resolution:
         lines += resolution_lines(result)
