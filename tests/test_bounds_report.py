@@ -38,6 +38,11 @@ def test_a_stiffness_the_extension_leaves_on_its_bound_is_said_not_the_rigs():
                                   _at(rack__coulomb_n=300.0), upper)
     assert driven[0]["bounds"][1] == 300.0 and driven[0]["extended_on"] == "upper"
     assert "driven to it by the extension" in "\n".join(bound_lines(driven, extended=True))
+    # from one bound to the other
+    other = parameters_on_bounds(EPS_MODEL, free, base,
+                                 _at(worm_gear__stiffness_nm_per_rad=EPS_MODEL.spec(GEAR).upper))
+    assert (other[0]["base_on"], other[0]["extended_on"]) == ("lower", "upper")
+    assert "to its other bound" in "\n".join(bound_lines(other, extended=True))
     # no finding: the identify step's reading; nothing on a bound, no section
     assert "may lack an effect" in "\n".join(bound_lines(rows, extended=False))
     assert parameters_on_bounds(EPS_MODEL, free, _at(), _at()) == []

@@ -193,15 +193,21 @@ def test_plot_learned_writes_a_png(backlash, backlash_model, tmp_path):
 
 
 @pytest.mark.slow  # ~35 s (a spawned interpreter imports torch); CI's pipeline runs it
-def test_the_network_trains_in_a_process_of_its_own_to_the_same_model(clean):
+def test_the_network_trains_in_a_process_of_its_own_to_the_same_model(clean, caplog):
     """Beside the structure test the network trains in a spawned process (no interpreter
     lock shared with the refits), to the same model as here."""
+    from concurrent.futures import ProcessPoolExecutor
+
     from mbst.discovery.evidence.collect import NeuralJob, neural_evidence
     from mbst.discovery.state import DiscoverSettings
 
     ident = [t for t in clean if t.role == "identification"][:2]  # small: a wiring test
     settings = DiscoverSettings(neural_iterations=2)
-    model, ev = NeuralJob(ident, settings, EpsCandidateLibrary).result()
+    with caplog.at_level("WARNING"):
+        job = NeuralJob(ident, settings, EpsCandidateLibrary)
+        assert isinstance(job._pool, ProcessPoolExecutor)
+        model, ev = job.result()
+    assert "trained in a thread" not in caplog.text  # the process did it, not the fallback
     here, ev_here = neural_evidence(ident, settings, EpsCandidateLibrary)
     assert model.loss_history == here.loss_history and model.gains == here.gains
     assert ev["ranking"] == ev_here["ranking"]

@@ -613,6 +613,17 @@ def _least_squares_within_budget(problem: FitProblem, u0: np.ndarray, max_nfev: 
 IDENTIFIABLE_REL_STD = 0.1
 
 
+# a parameter within this share of its range (in the optimiser's coordinates: decades for
+# a log-scaled one) of a bound ended on it
+AT_BOUND_SHARE = 1e-4
+
+
+def on_bound(u: np.ndarray, lb: np.ndarray, ub: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of ``u`` lie on their lower and which on their upper bound (``AT_BOUND_SHARE``)."""
+    span = ub - lb
+    return u - lb < AT_BOUND_SHARE * span, ub - u < AT_BOUND_SHARE * span
+
+
 def residual_memory(r: np.ndarray, max_lag: int | None = None) -> int:
     """Lags over which a residual block stays correlated (first autocorrelation below 0.05).
 
@@ -689,8 +700,8 @@ def _summarise(problem: FitProblem, res, costs: list[float]) -> FitResult:
             weak |= np.abs(vt[k]) > 0.3
     weak &= ~problem.stated  # its stated prior holds it
     weak[list(problem.ties)] = True  # the split is assumed, not measured
-    span = problem.ub - problem.lb
-    at_bound = (u - problem.lb < 1e-4 * span) | (problem.ub - u < 1e-4 * span)
+    at_lower, at_upper = on_bound(u, problem.lb, problem.ub)
+    at_bound = at_lower | at_upper
     rel = np.where(np.abs(theta) > 0, std_theta / np.maximum(np.abs(theta), 1e-300), np.inf)
     identifiable = ~weak & (rel < IDENTIFIABLE_REL_STD)
     names = problem.free

@@ -3,7 +3,7 @@
 The identify step says it of the base model (``identify.md``: "ended on a bound … the base
 model may lack an effect and be compensating with this parameter"). Discovery's answer
 says what the named effects did to it: on realistic bench rigs the worm-gear stiffness
-sat on its lower bound in 42 of 72 stored discoveries, and on one (seed 2301) the
+sat on its lower bound in 42 of 79 stored discoveries, and on one (seed 2301) the
 extension with the worm-gear backlash that was named left it there (1000 N·m/rad for a
 true 5298), where on the demo the backlash released it (1000 → 7879). A value on a bound
 is not a measurement of it: an engineer must not read it as the rig's.
@@ -14,20 +14,16 @@ from __future__ import annotations
 import numpy as np
 
 from mbst.core.model import ModelDefinition
-
-# distance to a bound that counts as on it, as a share of the range (least_squares ends
-# within 1e-10 of a bound; a range searched in decades as a share of them)
-ON_BOUND = 1e-6
+from mbst.identify.fitting import on_bound
 
 
 def _side(value: float, lower: float, upper: float, log_scale: bool) -> str | None:
-    if log_scale and lower > 0 and np.isfinite(upper):  # searched in decades
-        value, lower, upper = np.log10(max(value, 1e-300)), np.log10(lower), np.log10(upper)
-    width = upper - lower if np.isfinite(upper - lower) else max(abs(lower), 1.0)
-    for side, bound in (("lower", lower), ("upper", upper)):
-        if np.isfinite(bound) and abs(value - bound) <= ON_BOUND * width:
-            return side
-    return None
+    """``lower``, ``upper`` or ``None``, by the rule the identify step flags a bound with
+    (``fitting.on_bound``: in decades for a parameter searched in them)."""
+    if log_scale and lower > 0:
+        value, lower, upper = (np.log(max(x, 1e-300)) for x in (value, lower, upper))
+    at_lower, at_upper = on_bound(np.array([value]), np.array([lower]), np.array([upper]))
+    return "lower" if at_lower[0] else "upper" if at_upper[0] else None
 
 
 def parameters_on_bounds(model: ModelDefinition, free: list[str], base: np.ndarray,
@@ -59,6 +55,8 @@ def _reading(row: dict, extended: bool) -> str:
     if was and now == was:
         return ("still on it with the named effects in: the model still compensates with "
                 "it, or these tests do not pin it; its value is not the rig's")
+    if was and now:
+        return "moved by the extension to its other bound: a named effect trades against it"
     if was:
         return "released by the extension: the named effects took what it stood in for"
     return "driven to it by the extension: a named effect trades against it"

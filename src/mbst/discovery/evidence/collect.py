@@ -51,9 +51,9 @@ class NeuralJob:
     """The neural evidence trained beside the structure test, in a process of its own.
 
     A thread beside the refits held the interpreter lock for torchdiffeq's step loop
-    (Python per step): on the demo it trained in 99 s and the structure test took 176 s,
-    where without the network it took 143 s. A spawned process shares the cores but not
-    the lock. Where the process cannot start or dies (a calling script without the
+    (Python per step): on the demo it trained in 93 s and the structure test took 176 s
+    (143 s without the network); in a spawned process, which shares the cores but not the
+    lock, 75 s and 165 s. Where the process cannot start or dies (a calling script without the
     ``if __name__ == "__main__":`` guard that spawning needs, memory), the network trains
     in a thread instead and the log says why: the evidence is never lost to the process.
     """
