@@ -61,7 +61,10 @@ class EffectSpec:
     side; the resolution step states a detection limit for each side. ``level``: the
     element's Coulomb level a ratio-type size is relative to (a Stribeck rise F_s/F_c, an
     asymmetry F+/F−); named in a part that moves as one body with another, the finding
-    states the body's size (``discovery/lumped.py``).
+    states the body's size (``discovery/lumped.py``). ``damping``: for an exponent on the
+    element's speed (a power law b·|v|^a), the damping coefficient whose units the exponent
+    changes: a start that moves the exponent moves it too, to keep the damping force over
+    the speeds the tests run at (``StageScorer.keep_damping_force``).
     """
 
     effect: str
@@ -75,6 +78,7 @@ class EffectSpec:
     other_side_size: dict[str, float] = field(default_factory=dict)
     level: str = ""
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    damping: str = ""
 
     @property
     def key(self) -> str:

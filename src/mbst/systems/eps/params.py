@@ -272,7 +272,8 @@ def _friction_effects(elem: str) -> list[EffectSpec]:
                    {fp("power_law_damping.exponent"): 0.5},
                    # seed 001 fitted 0.5 to its column; a damping that grows faster than
                    # the speed is as real and shows elsewhere (at speed, not near rest)
-                   other_side_size={fp("power_law_damping.exponent"): 1.5}),
+                   other_side_size={fp("power_law_damping.exponent"): 1.5},
+                   damping=fp("viscous")),
         EffectSpec("asymmetric_friction", elem,
                    {"ratio": fp("asymmetric_friction.ratio")},
                    (fp("asymmetric_friction.ratio"),),
