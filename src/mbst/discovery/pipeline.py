@@ -129,6 +129,11 @@ class DiscoveryResult:
             if f.alternatives:
                 lines.append("    not ruled out: " + ", ".join(
                     f"{a['effect']} in {a['component']}" for a in f.alternatives))
+        below = controls_below_base(self.findings, self.comparison)
+        if below is not None:
+            lines.append(f"  held out: the extended model scores below the base on the controls "
+                         f"({below[1]:.1f} against {below[0]:.1f} %): read the names with care "
+                         "(discovery.md)")
         blind = [r.key for r in self.resolution if r.sizes and not r.resolved_at_realistic_size]
         if blind:
             lines.append("  these tests would not show at their realistic size: "
@@ -145,6 +150,24 @@ class DiscoveryResult:
             lines.append(f"  {key:<40} ours {self.benchmark.get(key, float('nan')):9.4g}  "
                          f"published {pub['value']:.4g} ({pub['model']})")
         return "\n".join(lines)
+
+
+def controls_below_base(findings: list[Finding], comparison: pd.DataFrame
+                        ) -> tuple[float, float] | None:
+    """(base, extended) mean control FIT where a named extension scores below the base on
+    the held-out controls (by at least the 0.1 % the reports print), else ``None``. Said,
+    never acted on: the controls choose nothing."""
+    if not any(f.effect != "unexplained" for f in findings) or comparison.empty:
+        return None
+    wide = comparison.pivot_table(index=["test", "channel"], columns="model",
+                                  values="fit_percent")
+    if not {"base", "extended"} <= set(wide.columns):
+        return None
+    both = wide[["base", "extended"]].dropna()
+    if both.empty:
+        return None
+    base, ext = (float(both[m].mean()) for m in ("base", "extended"))
+    return (base, ext) if ext <= base - 0.1 else None
 
 
 def discover(campaign: Campaign, settings: DiscoverSettings | None = None,
