@@ -442,6 +442,9 @@ def limit_text(r: Resolution, other_side: bool) -> str:
                 f"this prediction says {100 * c.predicted.share:.1f} % at that size: these "
                 "tests' output error does not reach the effect as predicted, so they do not "
                 "rule it out at any size")
+    if c is not None and c.contradicts:
+        return ("**no limit stated** either: the same prediction, which the refit on the "
+                "other side contradicts")
     if limit is None:
         return "**not resolved** up to " + size_text(sizes[-1], r.size_parameters)
     # resolved already at the smallest size tried: the limit lies at or below it
