@@ -310,13 +310,14 @@ class StageScorer:
         return out
 
     def _element_speed(self, component: str) -> np.ndarray | None:
-        """The element's speed over the stage's tests at the base refit (decimated);
-        ``None`` where the family names no speed for it."""
+        """The element's speed over the stage's tests at the base refit, or at the base
+        where it is not refitted (the resolution step's), decimated; ``None`` where the
+        family names no speed for it."""
         name = self.model.element_speeds.get(component)
         if name is None:
             return None
         if component not in self._speeds:
-            p = self.base_refit()[0]
+            p = self.base if self._base_fit is None else self._base_fit[0]
             twins = twins_each_alone(self.tests, [p[None]] * len(self.tests))
             step = max(self.decimate, 1)
             self._speeds[component] = np.concatenate(

@@ -157,7 +157,7 @@ def _side_label(r, other_side: bool) -> str:
         return (f"no limit stated (its refit removed {100 * c.refit_share:.0f} % where "
                 f"{100 * c.predicted.share:.0f} % is predicted)")
     if c is not None and c.contradicts:
-        return "no limit stated (its refit, the other way, falls short of the prediction)"
+        return "no limit stated either"
     if other_side:
         return _limit_label(r.other_side, r.other_side_resolved_from, False)
     return _limit_label(r.sizes, r.resolved_from)
