@@ -622,3 +622,30 @@ def test_a_clean_campaign_that_logs_the_motor_angle_gives_no_finding(tmp_path_fa
     result = discover(camp, DiscoverSettings(neural=False, sparse=False))
     assert not [f for f in result.findings if f.effect == "unexplained"], \
         [f.evidence for f in result.findings]
+
+
+def test_a_law_read_beside_a_stiffness_on_its_bound_says_so():
+    """Realistic rigs 2402 (a motor cogging) and 2406 (a torque lag) read "rack position
+    follows a polynomial in torsion-bar torque" at 0.66 and 0.69 beside the worm-gear
+    stiffness on its lower bound, a compliance standing in for what the rig did. The
+    finding says so; a stiffness inside its range, or a reading that is no law in a
+    measured quantity, adds nothing."""
+    from types import SimpleNamespace
+
+    from mbst.discovery.rounds.unexplained import stiffness_on_bound_note
+    from mbst.systems.eps.model import EPS_MODEL
+
+    name = "worm_gear.stiffness_nm_per_rad"
+    p = EPS_MODEL.vector_from({name: EPS_MODEL.spec(name).lower})
+    state = SimpleNamespace(model=EPS_MODEL, p=p, base=SimpleNamespace(preid={"upper": {}}),
+                            model_free=lambda stage: [name, "rack.coulomb_n"])
+    law = SimpleNamespace(best=SimpleNamespace(group="polynomial:torsion_bar_torque_nm",
+                                               scenarios=("free_tie_rods",)))
+    note = stiffness_on_bound_note(state, [law])
+    assert f"{name} on its lower bound (1000 N·m/rad)" in note
+    assert "a compliance the fit compensates with" in note
+    ripple = SimpleNamespace(best=SimpleNamespace(group="periodic:motor_angle_rad",
+                                                  scenarios=("free_tie_rods",)))
+    assert stiffness_on_bound_note(state, [ripple]) == ""
+    state.p = EPS_MODEL.vector_from({name: 8000.0})
+    assert stiffness_on_bound_note(state, [law]) == ""

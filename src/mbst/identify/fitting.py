@@ -624,6 +624,15 @@ def on_bound(u: np.ndarray, lb: np.ndarray, ub: np.ndarray) -> tuple[np.ndarray,
     return u - lb < AT_BOUND_SHARE * span, ub - u < AT_BOUND_SHARE * span
 
 
+def bound_side(value: float, lower: float, upper: float, log_scale: bool) -> str | None:
+    """``lower``, ``upper`` or ``None``: one value by ``on_bound``'s rule, in decades for a
+    parameter searched in them."""
+    if log_scale and lower > 0:
+        value, lower, upper = (np.log(max(x, 1e-300)) for x in (value, lower, upper))
+    at_lower, at_upper = on_bound(np.array([value]), np.array([lower]), np.array([upper]))
+    return "lower" if at_lower[0] else "upper" if at_upper[0] else None
+
+
 def residual_memory(r: np.ndarray, max_lag: int | None = None) -> int:
     """Lags over which a residual block stays correlated (first autocorrelation below 0.05).
 

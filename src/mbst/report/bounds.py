@@ -14,16 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from mbst.core.model import ModelDefinition
-from mbst.identify.fitting import on_bound
-
-
-def _side(value: float, lower: float, upper: float, log_scale: bool) -> str | None:
-    """``lower``, ``upper`` or ``None``, by the rule the identify step flags a bound with
-    (``fitting.on_bound``: in decades for a parameter searched in them)."""
-    if log_scale and lower > 0:
-        value, lower, upper = (np.log(max(x, 1e-300)) for x in (value, lower, upper))
-    at_lower, at_upper = on_bound(np.array([value]), np.array([lower]), np.array([upper]))
-    return "lower" if at_lower[0] else "upper" if at_upper[0] else None
+from mbst.identify.fitting import bound_side
 
 
 def parameters_on_bounds(model: ModelDefinition, free: list[str], base: np.ndarray,
@@ -39,7 +30,7 @@ def parameters_on_bounds(model: ModelDefinition, free: list[str], base: np.ndarr
             continue
         hi = min(spec.upper, (upper or {}).get(name, np.inf))
         i = model.param_index[name]
-        was, now = (_side(v[i], spec.lower, hi, spec.log_scale) for v in (base, extended))
+        was, now = (bound_side(v[i], spec.lower, hi, spec.log_scale) for v in (base, extended))
         if was or now:
             rows.append({"parameter": name, "unit": spec.unit, "base": float(base[i]),
                          "extended": float(extended[i]), "bounds": [spec.lower, hi],

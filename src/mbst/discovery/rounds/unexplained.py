@@ -52,6 +52,7 @@ from mbst.discovery.signature import (
     feature_names,
 )
 from mbst.discovery.state import DiscoveryState, Finding
+from mbst.identify.fitting import bound_side
 from mbst.io.campaign import running_order_places
 
 log = logging.getLogger(__name__)
@@ -143,7 +144,35 @@ def _describe(state: DiscoveryState) -> None:
         # a sensor whose lag was refitted and took nothing is no suspect behind the reading
         state.findings.append(unexplained_finding(
             found, components, () if not_lag else signatures,
-            not_lag + stated_values_note(state.rounds)))
+            not_lag + stated_values_note(state.rounds) + stiffness_on_bound_note(state, found)))
+
+
+def stiffness_on_bound_note(state: DiscoveryState, found: list[ChannelSignature]) -> str:
+    """Where the reading is a law in a measured quantity (a polynomial) and the model holds a
+    stiffness of those stages on a bound of its range: the residual a compliance leaves.
+    On realistic rigs 2402 (a motor cogging) and 2406 (a torque lag) the reading was "rack
+    position follows a polynomial in torsion-bar torque" at 0.66 and 0.69, beside the
+    worm-gear stiffness on its lower bound, which stood in for what the rig did; the
+    reading alone sent an engineer after a law that varies."""
+    if not any(s.best.group.startswith("polynomial:") for s in found):
+        return ""
+    stages = dict.fromkeys(st for s in found for st in s.best.scenarios)
+    held = []
+    for name in dict.fromkeys(n for st in stages for n in state.model_free(st) or ()):
+        spec = state.model.spec(name)
+        if spec.kind != "base" or "stiffness" not in name:
+            continue
+        hi = min(spec.upper, state.base.preid.get("upper", {}).get(name, math.inf))
+        side = bound_side(float(state.p[state.model.param_index[name]]), spec.lower, hi,
+                          spec.log_scale)
+        if side:
+            held.append(f"{name} on its {side} bound "
+                        f"({state.p[state.model.param_index[name]]:.4g} {spec.unit})")
+    if not held:
+        return ""
+    return ("; beside it the fit holds " + ", ".join(held) + ": a compliance the fit "
+            "compensates with (a sensor's lag or a gap reads as one), so that stiffness, "
+            "not a law that varies, may be what the model gets wrong")
 
 
 def stated_values_note(rounds: list[dict]) -> str:
