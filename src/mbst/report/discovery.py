@@ -443,8 +443,8 @@ def limit_text(r: Resolution, other_side: bool) -> str:
                 "tests' output error does not reach the effect as predicted, so they do not "
                 "rule it out at any size")
     if c is not None and c.contradicts:
-        return ("**no limit stated** either: the same prediction, which the refit on the "
-                "other side contradicts")
+        return ("**no limit stated** either: the refit on the other side contradicts the "
+                "prediction both limits come from")
     if limit is None:
         return "**not resolved** up to " + size_text(sizes[-1], r.size_parameters)
     # resolved already at the smallest size tried: the limit lies at or below it

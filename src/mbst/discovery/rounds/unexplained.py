@@ -162,12 +162,11 @@ def stiffness_on_bound_note(state: DiscoveryState, found: list[ChannelSignature]
         spec = state.model.spec(name)
         if spec.kind != "base" or "stiffness" not in name:
             continue
+        value = float(state.p[state.model.param_index[name]])
         hi = min(spec.upper, state.base.preid.get("upper", {}).get(name, math.inf))
-        side = bound_side(float(state.p[state.model.param_index[name]]), spec.lower, hi,
-                          spec.log_scale)
+        side = bound_side(value, spec.lower, hi, spec.log_scale)
         if side:
-            held.append(f"{name} on its {side} bound "
-                        f"({state.p[state.model.param_index[name]]:.4g} {spec.unit})")
+            held.append(f"{name} on its {side} bound ({value:.4g} {spec.unit})")
     if not held:
         return ""
     return ("; beside it the fit holds " + ", ".join(held) + ": a compliance the fit "
