@@ -1339,3 +1339,32 @@ def test_an_extension_that_does_worse_on_the_controls_is_said_so(play, tmp_path)
     write_discover_outputs(bad, tmp_path / "out")
     rec = json.loads((tmp_path / "out" / "discovery.json").read_text())
     assert [f["effect"] for f in rec["findings"]] == [f.effect for f in result.findings]
+
+
+def test_a_gain_the_stage_reaches_with_the_effect_off_is_not_the_effects(tmp_path):
+    """A candidate's refit frees the stage's parameters with the effect, and from its
+    starts it can reach a better basin of the base model than the base refit did
+    (realistic rig 2512: a rack asymmetry of 1.004 "removed" 57 % of its stage beside a
+    rack Stribeck term the same refit moved to its true velocity, and was named). Its
+    share is measured against its own fit with the effect off: on a clean stage whose base
+    refit sits in a worse basin, an asymmetry gains nothing."""
+    from mbst.discovery.structure import StageScorer
+    from mbst.identify.fitting import channel_scales, prepare_test
+
+    recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())
+    camp = read_campaign(run_bench(tmp_path, recipe))
+    tests = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()
+             if s.scenario == "blocked_column"]
+    scorer = StageScorer(tests, "blocked_column", recipe.true_params(), channel_scales(tests))
+    p, cost = scorer.base_refit()
+    # a base refit stuck in a worse basin: the column's Coulomb level 60 % too high
+    stuck = p.copy()
+    stuck[EPS_MODEL.param_index["steering_column.coulomb_nm"]] *= 1.6
+    per_test = scorer.costs(stuck[None])[0]
+    assert per_test.sum() > 2 * cost
+    scorer._base_fit, scorer._base_per_test = (stuck, float(per_test.sum())), per_test
+
+    score = scorer.score(EPS_MODEL.effects["asymmetric_friction:steering_column"], 1000.0,
+                         max_nfev=5)
+    assert score.cost < 0.7 * per_test.sum()  # the refit left the stuck basin
+    assert score.relative_gain < 0.05, (score.relative_gain, score.headline)

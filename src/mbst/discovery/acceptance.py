@@ -72,7 +72,8 @@ def ranking_bootstrap(scorer: StageScorer, best: CandidateScore, scores: list[Ca
     loses it; candidates in ``joint`` (same effect, components that move as one
     body) are named with ``best`` and are no rivals.
     """
-    p_base = scorer.base_refit()[0]
+    # against what the winner's share was measured against (``CandidateScore.base_params``)
+    p_base = best.base_params if best.base_params is not None else scorer.base_refit()[0]
     joint_keys = {s.key for s in joint}
     rivals = [s for s in scores if s.stage == best.stage and s is not best
               and s.key not in joint_keys and not s.fell_back][: BOOTSTRAP_RIVALS - 1]
