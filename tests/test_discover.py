@@ -992,7 +992,7 @@ def test_a_winner_that_loses_its_held_out_tests_leaves_the_next_one_tried(monkey
     assert scores == [gap, dahl, small] and cv["wins"] == 3 and lags == []
     assert tried == [dahl.key, gap.key]
     assert rec["cross_validation_lost"] == [{"key": dahl.key, "relative_gain": pytest.approx(0.223),
-                                             "wins": 1, "folds": 3}]
+                                             "wins": 1, "folds": 3, "held_out_gain": 0.1}]
     state.rounds = [rec | {"accepted": gap.key}]
     assert "AHEAD OF IT, NOT HELD OUT: presliding_hysteresis:rack removed 22.3 % but won " \
         "1/3" in catalogue_mod._lost_text(state, gap.key)
@@ -1024,6 +1024,55 @@ def test_a_winner_that_loses_its_held_out_tests_leaves_the_next_one_tried(monkey
     assert tried == [] and "is at the noise floor" in rec["reason"]
 
 
+def test_a_winner_of_most_folds_whose_held_out_cost_rises_does_not_hold_out(monkeypatch):
+    """Realistic rig 2512 (motor presliding and rack Stribeck planted, compact plan):
+    round 2 named a rack asymmetry of 1.004 at 0.38 for 57 % of the blocked column. It
+    won 2 of 3 folds, yet the held-out cost of the three rose 222 % (its ramp fold 4.5
+    times the base's). Winning most folds is not enough: the pooled held-out cost must
+    fall too, else the next candidate is tried and the round says why."""
+    from types import SimpleNamespace
+
+    import mbst.discovery.rounds.catalogue as catalogue_mod
+    from mbst.discovery import acceptance
+
+    def cand(key, gain):
+        return CandidateScore(key=key, effect=key.split(":")[0], component=key.split(":")[1],
+                              stage="blocked_column", tests=["t"], free=[], k_effect=1,
+                              cost_base=1.0, cost=1.0 - gain, n_eff=500.0, aic_delta=-200.0,
+                              params=np.zeros(1))
+
+    lopsided = cand("asymmetric_friction:rack", 0.57)
+    next_one = cand("presliding_hysteresis:motor", 0.40)
+    folds = {lopsided.key: (2, -2.225), next_one.key: (2, 0.31)}
+
+    def cross_validate(scorer, c, p, nfev):
+        wins, gain = folds[c.key]
+        return {"folds": 3, "wins": wins, "held_out_gain": gain}
+
+    monkeypatch.setattr(acceptance, "cross_validate", cross_validate)
+    monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.4)
+    state = SimpleNamespace(settings=DiscoverSettings(), p=np.zeros(1), rounds=[])
+    rec = {"round": 2}
+    scores, cv, _ = catalogue_mod._cross_validated(
+        state, {"blocked_column": "blocked_column"}, [lopsided, next_one], [], rec)
+    assert scores[0] is next_one and cv["held_out_gain"] == 0.31
+    state.rounds = [rec | {"accepted": next_one.key}]
+    assert "asymmetric_friction:rack removed 57.0 % but won 2/3 leave-one-test-out folds, " \
+        "the held-out cost of all of them +222 %" in catalogue_mod._lost_text(state,
+                                                                             next_one.key)
+    # the same with nothing behind it: nothing named, and the round says why
+    rec = {"round": 2}
+    assert catalogue_mod._cross_validated(
+        state, {"blocked_column": "blocked_column"}, [lopsided], [], rec) is None
+    assert "(won 2/3 leave-one-test-out folds, the held-out cost of all of them +222 %)" \
+        in rec["reason"]
+    assert [g["key"] for g in rec["cross_validation_lost"]] == [lopsided.key]  # the figure's
+    # a count of folds with a held-out cost that falls holds, as do stages with no fold
+    assert acceptance.holds_out({"folds": 3, "wins": 2, "held_out_gain": 0.05})
+    assert not acceptance.holds_out({"folds": 3, "wins": 1, "held_out_gain": 0.5})
+    assert acceptance.holds_out({"folds": 0, "wins": 0, "held_out_gain": None})
+
+
 def test_the_structure_figure_says_which_candidate_lost_its_held_out_tests(
         monkeypatch, tmp_path):
     """Rig 2013's round 1 drew the rack presliding above the accepted backlash with nothing
@@ -1040,6 +1089,15 @@ def test_the_structure_figure_says_which_candidate_lost_its_held_out_tests(
                                       ).get_yticklabels()]
     assert labels == ["presliding_hysteresis:rack (free_tie_rods) — won 1/3 held-out tests",
                       "backlash:worm_gear (free_tie_rods)"], labels
+    # one that won most folds while the held-out cost of all of them rose says so
+    rounds[0]["cross_validation_lost"] = [{"key": "presliding_hysteresis:rack",
+                                           "relative_gain": 0.223, "wins": 2, "folds": 3,
+                                           "held_out_gain": -2.225}]
+    labels = [t.get_text().replace("\n", " ")
+              for t in structure_axes(monkeypatch, rounds, tmp_path / "t.png"
+                                      ).get_yticklabels()]
+    assert labels[0] == ("presliding_hysteresis:rack (free_tie_rods) — won 2/3 held-out "
+                         "tests, all of them +222 % in cost"), labels
 
 
 def test_a_stage_whose_winner_a_rival_matched_is_not_called_at_the_noise_floor():

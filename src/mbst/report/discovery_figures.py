@@ -92,8 +92,7 @@ def structure_bars(result, path: Path) -> None:
         ax.set_yticks(y, [textwrap.fill(f"{c['key']} ({c['stage']})"
                                         + (" — rival" if c.get("rival") else "")
                                         + (" — refit stuck, off" if c.get("fell_back") else "")
-                                        + (f" — won {lost[c['key']]['wins']}/"
-                                           f"{lost[c['key']]['folds']} held-out tests"
+                                        + (_lost_label(lost[c["key"]])
                                            if c["key"] in lost and not c.get("rival") else ""),
                                         60, break_on_hyphens=False)
                           for c in cands], fontsize=7)
@@ -113,6 +112,15 @@ def structure_bars(result, path: Path) -> None:
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     plots.save_figure(fig, path)
+
+
+def _lost_label(lost: dict) -> str:
+    """A structure bar's note for a candidate that lost its held-out tests."""
+    label = f" — won {lost['wins']}/{lost['folds']} held-out tests"
+    gain = lost.get("held_out_gain")
+    if gain is not None and gain <= 0.0 and lost["wins"] * 2 >= lost["folds"]:
+        label += f", all of them {-100 * gain:+.0f} % in cost"
+    return label
 
 
 def resolution_bars(result, path: Path) -> bool:

@@ -158,15 +158,17 @@ def _cross_validated(state: DiscoveryState, scorers: dict[str, StageScorer],
             continue
         cv = acceptance.cross_validate(scorers[s.stage], s, state.p,
                                        state.settings.cv_nfev)
-        if not cv["folds"] or cv["wins"] * 2 >= cv["folds"]:
+        if acceptance.holds_out(cv):
             if lost:
                 rec["cross_validation_lost"] = lost
                 rec["aic_drop_needed"] = round(aic_drop(state, s.k_effect), 2)
             return [s] + [x for x in scores if x is not s], cv, found
         lost.append({"key": s.key, "relative_gain": s.relative_gain, "wins": cv["wins"],
-                     "folds": cv["folds"]})
+                     "folds": cv["folds"], "held_out_gain": cv["held_out_gain"]})
+    if lost:  # the structure figure marks them
+        rec["cross_validation_lost"] = lost
     rec["reason"] = "; ".join(f"{g['key']} lost leave-one-test-out cross-validation "
-                              f"({g['wins']}/{g['folds']})" for g in lost)
+                              f"(won {_folds_text(g)})" for g in lost)
     return None
 
 
@@ -194,8 +196,17 @@ def _lost_text(state: DiscoveryState, key: str) -> str:
     lost = [g for rec in state.rounds if rec.get("accepted") == key
             for g in rec.get("cross_validation_lost", [])]
     return "".join(f"; AHEAD OF IT, NOT HELD OUT: {g['key']} removed "
-                   f"{100 * g['relative_gain']:.1f} % but won {g['wins']}/{g['folds']} "
-                   "leave-one-test-out folds" for g in lost)
+                   f"{100 * g['relative_gain']:.1f} % but won {_folds_text(g)}"
+                   for g in lost)
+
+
+def _folds_text(lost: dict) -> str:
+    """The folds a candidate won, and the held-out cost of all of them where it rose."""
+    text = f"{lost['wins']}/{lost['folds']} leave-one-test-out folds"
+    gain = lost.get("held_out_gain")
+    if gain is not None and gain <= 0.0 and lost["wins"] * 2 >= lost["folds"]:
+        text += f", the held-out cost of all of them {-100 * gain:+.0f} %"
+    return text
 
 
 def _nothing_to_refit(shortlist: set[str] | None, first_screen: dict | None) -> str:
