@@ -397,3 +397,11 @@ def holds_out(cv: dict) -> bool:
     if not cv["folds"]:
         return True
     return cv["wins"] * 2 >= cv["folds"] and cv["held_out_gain"] > 0.0
+
+
+def pooled_rise(cv: dict) -> float | None:
+    """The held-out cost's rise, in %, where that, not the fold count, lost the folds."""
+    gain = cv.get("held_out_gain")
+    if gain is None or gain > 0.0 or cv["wins"] * 2 < cv["folds"]:
+        return None
+    return -100.0 * gain

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mbst.discovery.acceptance import FALSE_ALARM_RATE
+from mbst.discovery.acceptance import FALSE_ALARM_RATE, pooled_rise
 from mbst.discovery.rounds import equation_error, stickslip
 from mbst.discovery.rounds.ripple import fast_part
 from mbst.report import plots
@@ -117,10 +117,8 @@ def structure_bars(result, path: Path) -> None:
 def _lost_label(lost: dict) -> str:
     """A structure bar's note for a candidate that lost its held-out tests."""
     label = f" — won {lost['wins']}/{lost['folds']} held-out tests"
-    gain = lost.get("held_out_gain")
-    if gain is not None and gain <= 0.0 and lost["wins"] * 2 >= lost["folds"]:
-        label += f", all of them {-100 * gain:+.0f} % in cost"
-    return label
+    rise = pooled_rise(lost)
+    return label if rise is None else f"{label}, all of them {rise:+.0f} % in cost"
 
 
 def resolution_bars(result, path: Path) -> bool:

@@ -203,10 +203,8 @@ def _lost_text(state: DiscoveryState, key: str) -> str:
 def _folds_text(lost: dict) -> str:
     """The folds a candidate won, and the held-out cost of all of them where it rose."""
     text = f"{lost['wins']}/{lost['folds']} leave-one-test-out folds"
-    gain = lost.get("held_out_gain")
-    if gain is not None and gain <= 0.0 and lost["wins"] * 2 >= lost["folds"]:
-        text += f", the held-out cost of all of them {-100 * gain:+.0f} %"
-    return text
+    rise = acceptance.pooled_rise(lost)
+    return text if rise is None else f"{text}, the held-out cost of all of them {rise:+.0f} %"
 
 
 def _nothing_to_refit(shortlist: set[str] | None, first_screen: dict | None) -> str:
