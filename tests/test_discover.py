@@ -992,7 +992,8 @@ def test_a_winner_that_loses_its_held_out_tests_leaves_the_next_one_tried(monkey
     assert scores == [gap, dahl, small] and cv["wins"] == 3 and lags == []
     assert tried == [dahl.key, gap.key]
     assert rec["cross_validation_lost"] == [{"key": dahl.key, "relative_gain": pytest.approx(0.223),
-                                             "wins": 1, "folds": 3, "held_out_gain": 0.1}]
+                                             "wins": 1, "folds": 3, "held_out_gain": 0.1,
+                                             "per_fold": []}]
     state.rounds = [rec | {"accepted": gap.key}]
     assert "AHEAD OF IT, NOT HELD OUT: presliding_hysteresis:rack removed 22.3 % but won " \
         "1/3" in catalogue_mod._lost_text(state, gap.key)

@@ -164,7 +164,8 @@ def _cross_validated(state: DiscoveryState, scorers: dict[str, StageScorer],
                 rec["aic_drop_needed"] = round(aic_drop(state, s.k_effect), 2)
             return [s] + [x for x in scores if x is not s], cv, found
         lost.append({"key": s.key, "relative_gain": s.relative_gain, "wins": cv["wins"],
-                     "folds": cv["folds"], "held_out_gain": cv["held_out_gain"]})
+                     "folds": cv["folds"], "held_out_gain": cv["held_out_gain"],
+                     "per_fold": cv.get("per_fold", [])})
     if lost:  # the structure figure marks them
         rec["cross_validation_lost"] = lost
     rec["reason"] = "; ".join(f"{g['key']} lost leave-one-test-out cross-validation "
