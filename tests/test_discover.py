@@ -226,6 +226,33 @@ def _stated(refit_share: float, predicted_share: float, other_side: bool = False
     return r
 
 
+def test_a_limit_of_an_effect_that_grows_as_its_parameter_falls_is_stated_that_way():
+    """Realistic rig 2512: the motor presliding, resolved already at the weakest size tried
+    (stiffness 20: stiffer is weaker), read "at or below stiffness = 20", the wrong way
+    round: every stiffness of 20 and less was resolved. A parameter that falls as the
+    effect grows (a presliding's stiffness, a power law's exponent below 1) is stated "at
+    or above", "from … down" and "not resolved down to"; one that rises keeps its words."""
+    from mbst.discovery.rounds.resolution import Resolution, SizeScore
+    from mbst.report.discovery import limit_text
+
+    def pair(values, resolved_from):
+        sizes = [SizeScore(m, {"stiffness": v}, 0.3 * m, -60 * m)
+                 for m, v in zip((0.1, 0.5, 1.0, 4.0), values, strict=True)]
+        return Resolution("presliding_hysteresis:motor", "presliding_hysteresis", "motor",
+                          "free_tie_rods", ["stiffness"], sizes, resolved_from=resolved_from)
+
+    falls = (20.0, 4.0, 2.0, 0.5)
+    assert limit_text(pair(falls, 0.1), False) == ("at or above stiffness = 20, weaker than "
+                                                   "the realistic size")
+    assert limit_text(pair(falls, 1.0), False) == "from stiffness = 2 down, the realistic size"
+    assert limit_text(pair(falls, None), False) == "**not resolved** down to stiffness = 0.5"
+    rises = (0.2, 1.0, 2.0, 8.0)
+    assert limit_text(pair(rises, 0.1), False) == ("at or below stiffness = 0.2, below the "
+                                                   "realistic size")
+    assert limit_text(pair(rises, 4.0), False) == "from stiffness = 8, 4× the realistic size"
+    assert limit_text(pair(rises, None), False) == "**not resolved** up to stiffness = 8"
+
+
 def test_a_limit_the_structure_tests_own_refit_contradicts_is_not_stated():
     """At a refit's optimum the share it removes is, to first order, the prediction at the
     size it reached. Realistic rig 954: a motor Stribeck of 1.54 missed, its refit reaching

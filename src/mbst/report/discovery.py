@@ -445,14 +445,30 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     if c is not None and c.contradicts:
         return ("**no limit stated** either: the refit on the other side contradicts the "
                 "prediction both limits come from")
+    # an effect that grows as its parameter falls (a presliding's stiffness, an exponent
+    # below 1) is stated the other way round: rig 2512's motor presliding read "at or
+    # below stiffness = 20" where sizes of 20 and less (stiffer is weaker) were resolved
+    falls = _grows_as_it_falls(sizes, r.size_parameters)
     if limit is None:
-        return "**not resolved** up to " + size_text(sizes[-1], r.size_parameters)
-    # resolved already at the smallest size tried: the limit lies at or below it
-    bound = "at or below" if limit is sizes[0] else "from"
-    return f"{bound} {size_text(limit, r.size_parameters)}, " + (
-        "below the realistic size" if limit.multiple < 1 else
+        return (f"**not resolved** {'down' if falls else 'up'} to "
+                + size_text(sizes[-1], r.size_parameters))
+    # resolved already at the weakest size tried: the limit lies beyond it
+    if limit is sizes[0]:
+        bound = f"at or {'above' if falls else 'below'} {size_text(limit, r.size_parameters)}"
+    else:
+        bound = f"from {size_text(limit, r.size_parameters)}" + (" down" if falls else "")
+    weaker = "weaker than" if falls else "below"
+    return f"{bound}, " + (
+        f"{weaker} the realistic size" if limit.multiple < 1 else
         "the realistic size" if limit.multiple == 1 else
         f"{limit.multiple:g}× the realistic size")
+
+
+def _grows_as_it_falls(sizes: list, size_parameters: list[str]) -> bool:
+    """Whether the sizes tried, weakest first, set the effect's parameter lower as they
+    grow stronger."""
+    names = [k for k in sizes[0].values if k in size_parameters] if sizes else []
+    return bool(names) and sizes[-1].values[names[0]] < sizes[0].values[names[0]]
 
 
 def size_text(size, size_parameters: list[str]) -> str:
