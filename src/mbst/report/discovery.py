@@ -466,7 +466,8 @@ def limit_text(r: Resolution, other_side: bool) -> str:
 
 def _grows_as_it_falls(sizes: list, size_parameters: list[str]) -> bool:
     """Whether the sizes tried, weakest first, set the effect's parameter lower as they
-    grow stronger."""
+    grow stronger. Read from the sizes, not ``EffectSpec.inverse_size``: a power law's
+    exponent below 1 falls too, and the record carries no model."""
     names = [k for k in sizes[0].values if k in size_parameters] if sizes else []
     return bool(names) and sizes[-1].values[names[0]] < sizes[0].values[names[0]]
 
