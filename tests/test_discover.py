@@ -446,6 +446,11 @@ def test_outputs_carry_the_findings_in_any_family(play, tmp_path):
     f = rec["findings"][0]
     spec = result.base.model.effects[f"{f['effect']}:{f['component']}"]
     assert set(f["parameters"]) == set(spec.headline) and 0 <= f["confidence"] <= 1
+    # the play's width is measured by these tests: its noise-only standard error is stated
+    # and small beside it, and the finding does not call it unmeasured
+    se = f["size_std_error"]["width_m"]
+    assert 0 < se < 0.1 * f["parameters"]["width_m"]
+    assert "size_not_measured" not in f and "SIZE NOT MEASURED" not in f["evidence"]
     table = pd.read_csv(tmp_path / "comparison.csv")
     merged = table.merge(result.comparison, on=["test", "channel", "model"])
     assert len(merged) == len(result.comparison) > 0

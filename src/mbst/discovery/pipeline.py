@@ -35,6 +35,7 @@ from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.evidence.collect import NeuralJob, sparse_evidence
 from mbst.discovery.evidence.hybrid import neural_correction
 from mbst.discovery.lumped import state_body_sizes
+from mbst.discovery.precision import state_size_precision
 from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.rounds.catalogue import proposal_finding, structure_rounds
 from mbst.discovery.rounds.equation_error import equation_error_round
@@ -126,6 +127,9 @@ class DiscoveryResult:
             where = " or ".join([f.component, *f.indistinguishable_from])
             lines.append(f"  found {f.effect} in {where} ({pars}), confidence "
                          f"{f.confidence:.2f}")
+            if f.size_not_measured:
+                lines.append("    size not measured by these tests: " + ", ".join(
+                    f"{h} ± {f.size_std_error[h]:.2g}" for h in f.size_not_measured))
             if f.alternatives:
                 lines.append("    not ruled out: " + ", ".join(
                     f"{a['effect']} in {a['component']}" for a in f.alternatives))
@@ -231,6 +235,7 @@ def _named(state: DiscoveryState, sparse_ev: dict | None, neural_ev: dict | None
     sawtooth_in_another_part(findings, state)
     findings = fold_one_body(findings + state.findings, state.residuals, state.model)
     state_body_sizes(findings, state.residuals, state.model, state.p)
+    state_size_precision(findings, state)
     return findings
 
 

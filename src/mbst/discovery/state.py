@@ -91,6 +91,10 @@ class Finding:
     # the unexplained round's verdict on a catalogue name: "confirmed" (nothing left in
     # its stage's channels), "partly explained", "in doubt"; "" where the round did not run
     confirmation: str = ""
+    # the noise-only standard error of each headline parameter in the extended model's
+    # stage fit, and the strengths these tests do not measure (``precision.py``)
+    size_std_error: dict[str, float] = field(default_factory=dict)
+    size_not_measured: list[str] = field(default_factory=list)
 
     def record(self) -> dict:
         return {"effect": self.effect, "component": self.component or None,
@@ -101,7 +105,10 @@ class Finding:
                 "indistinguishable_from": list(self.indistinguishable_from),
                 "alternatives": list(self.alternatives),
                 **({"signature": self.signature} if self.signature is not None else {}),
-                **({"confirmation": self.confirmation} if self.confirmation else {})}
+                **({"confirmation": self.confirmation} if self.confirmation else {}),
+                **({"size_std_error": self.size_std_error} if self.size_std_error else {}),
+                **({"size_not_measured": self.size_not_measured}
+                   if self.size_not_measured else {})}
 
 
 @dataclass

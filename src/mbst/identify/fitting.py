@@ -585,6 +585,16 @@ def solve(
     return _summarise(problem, best, costs)
 
 
+def precision_at(problem: FitProblem, p: np.ndarray) -> FitResult:
+    """Standard errors and correlations of ``problem``'s free parameters at ``p`` itself,
+    as a fit ending there would report them (the same sandwich), without a step taken."""
+    u = problem.u_of(p)
+    r = problem.residuals(u)
+    end = SimpleNamespace(x=u, cost=0.5 * float(r @ r), fun=r, jac=problem.jacobian(u),
+                          status=0, work_spent=False)
+    return _summarise(problem, end, [end.cost])
+
+
 def _least_squares_within_budget(problem: FitProblem, u0: np.ndarray, max_nfev: int):
     """scipy's least_squares from ``u0``; where its simulations spend the problem's work
     budget first (``work.py``), its best evaluated point, as least_squares would report a

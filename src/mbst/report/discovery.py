@@ -173,6 +173,14 @@ def fallback_summary(result: DiscoveryResult) -> str:
     return "\n".join(lines + failure_lines(result.failures)) + "\n"
 
 
+def _size_text(f, headline: str, value: float) -> str:
+    """One parameter of a finding, with its standard error where these tests do not
+    measure it (``discovery/precision.py``)."""
+    if headline not in f.size_not_measured:
+        return f"{headline} = {value:.4g}"
+    return f"{headline} = {value:.4g} (± {f.size_std_error[headline]:.2g}: not measured)"
+
+
 def _where(f) -> str:
     """A finding's component, with the parts of its body it could sit in as well."""
     return " or ".join([f.component, *f.indistinguishable_from]) or "–"
@@ -192,7 +200,7 @@ def markdown_summary(result: DiscoveryResult) -> str:
     if result.findings:
         lines += ["| # | effect | component | parameters | confidence |", "|---|---|---|---|---|"]
         for i, f in enumerate(result.findings, 1):
-            pars = ", ".join(f"{k} = {v:.4g}" for k, v in f.parameters.items())
+            pars = ", ".join(_size_text(f, k, v) for k, v in f.parameters.items())
             if f.effect == "unexplained" and f.signature:
                 # a refitted reality says its size; a signature, what it follows
                 pars = (f.signature["reading"] if f.signature.get("refitted") == "physics"
