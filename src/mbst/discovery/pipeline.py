@@ -39,7 +39,8 @@ from mbst.discovery.precision import state_size_precision
 from mbst.discovery.residuals import dominant_regions, residual_locations
 from mbst.discovery.rounds.catalogue import proposal_finding, structure_rounds
 from mbst.discovery.rounds.equation_error import equation_error_round
-from mbst.discovery.rounds.resolution import Resolution, resolution_round
+from mbst.discovery.rounds.limits import checked_resolution_round
+from mbst.discovery.rounds.resolution import Resolution
 from mbst.discovery.rounds.stickslip import (
     held_out_envelopes,
     sawtooth_in_another_part,
@@ -67,7 +68,8 @@ ROUNDS: dict[str, Round] = {
     "stick_slip": stick_slip_round,
     "equation_error": equation_error_round,
     "unexplained": unexplained_round,
-    "resolution": resolution_round,
+    # what these tests resolve, with the limits the refits left untested checked
+    "resolution": checked_resolution_round,
 }
 
 __all__ = ["FORMAT", "ROUNDS", "DiscoverSettings", "DiscoveryResult", "Finding", "discover",

@@ -355,12 +355,14 @@ def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
     """One row per (pair, size) of the predicted scores (``resolution.csv``)."""
     columns = ["effect", "component", "stage", "side", "multiple_of_realistic_size",
                "predicted_relative_gain", "predicted_aic_delta", "resolved",
-               "detection_limit_multiple", "refit_relative_gain"]
+               "detection_limit_multiple", "refit_relative_gain", "injected_relative_gain",
+               "injected_recovered"]
     if not resolution:
         return pd.DataFrame(columns=columns)
     # side: "realistic" for the realistic size's side of neutral, "other" for the other
     # side of an effect that acts either way (a power-law exponent above 1), "refit" the
-    # prediction at the size the structure test's refit reached (``RefitCheck``)
+    # prediction at the size the structure test's refit reached (``RefitCheck``),
+    # "injected" the prediction at the limit added to the data (``rounds/limits.py``)
     return pd.DataFrame([
         {"effect": r.effect, "component": r.component, "stage": r.stage, "side": side,
          "multiple_of_realistic_size": s.multiple,
@@ -368,12 +370,24 @@ def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
          "predicted_relative_gain": s.share, "predicted_aic_delta": s.aic_delta,
          "resolved": limit is not None and s.multiple >= limit,
          "detection_limit_multiple": limit,
-         "refit_relative_gain": r.refit.refit_share if side == "refit" else None}
+         "refit_relative_gain": r.refit.refit_share if side == "refit" else None,
+         "injected_relative_gain": r.injection.share if side == "injected" else None,
+         "injected_recovered": r.injection.recovered if side == "injected" else None}
         for r in resolution
         for side, sizes, limit in (("realistic", r.sizes, r.resolved_from),
                                    ("other", r.other_side, r.other_side_resolved_from),
-                                   ("refit", [r.refit.predicted] if r.refit else [], None))
+                                   ("refit", [r.refit.predicted] if r.refit else [], None),
+                                   ("injected", _injected_size(r), None))
         for s in sizes])
+
+
+def _injected_size(r: Resolution) -> list:
+    """The prediction at the size the limit check injected (none where it did not run)."""
+    inj = r.injection
+    if inj is None:
+        return []
+    sizes = r.other_side if inj.other_side else r.sizes
+    return [s for s in sizes if s.multiple == inj.multiple][:1]
 
 
 def resolution_lines(result: DiscoveryResult) -> list[str]:
@@ -453,6 +467,9 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     if c is not None and c.contradicts:
         return ("**no limit stated** either: the refit on the other side contradicts the "
                 "prediction both limits come from")
+    inj = r.injection
+    if inj is not None and not inj.recovered:
+        return _not_recovered_text(r, inj, other_side)
     # an effect that grows as its parameter falls (a presliding's stiffness, an exponent
     # below 1) is stated the other way round: rig 2512's motor presliding read "at or
     # below stiffness = 20" where sizes of 20 and less (stiffer is weaker) were resolved
@@ -466,10 +483,27 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     else:
         bound = f"from {size_text(limit, r.size_parameters)}" + (" down" if falls else "")
     weaker = "weaker than" if falls else "below"
+    checked = "" if inj is None or inj.other_side != other_side else (
+        f" (checked: added at that size to these data, the structure test's refit removed "
+        f"{100 * inj.share:.1f} % of its stage, ΔAIC {inj.aic_delta:.0f})")
     return f"{bound}, " + (
         f"{weaker} the realistic size" if limit.multiple < 1 else
         "the realistic size" if limit.multiple == 1 else
-        f"{limit.multiple:g}× the realistic size")
+        f"{limit.multiple:g}× the realistic size") + checked
+
+
+def _not_recovered_text(r: Resolution, inj, other_side: bool) -> str:
+    """A limit withheld because the effect at it, added to the data, was not recovered."""
+    if inj.other_side != other_side:
+        return ("**no limit stated** either: the limit on the other side, added to these "
+                "data, was not recovered, and both come from one prediction")
+    size = ", ".join(f"{k} = {v:.3g}" for k, v in inj.values.items() if k in r.size_parameters)
+    ended = ", ".join(f"{k} = {v:.3g}" for k, v in inj.refit_values.items()
+                      if k in r.size_parameters)
+    return (f"**no limit stated**: predicted from {size}, but the effect at that size, added "
+            f"to these data, was refitted by the structure test to {ended} and removed "
+            f"{100 * inj.share:.1f} % of its stage (ΔAIC {inj.aic_delta:.0f}): these tests "
+            "would not have named it, so they do not rule it out")
 
 
 def _grows_as_it_falls(sizes: list, size_parameters: list[str]) -> bool:

@@ -22,6 +22,7 @@ from mbst.discovery.rounds.backward import backward_check
 from mbst.discovery.rounds.screen import screen
 from mbst.discovery.state import DiscoveryState, Finding, Proposal
 from mbst.discovery.structure import CandidateScore, StageScorer, rank_key, structure_test
+from mbst.identify.fitting import PreparedTest
 
 log = logging.getLogger(__name__)
 
@@ -265,12 +266,13 @@ def _next_candidates(state: DiscoveryState, scores: list[CandidateScore], rec: d
     return NextRound({s.key for s in screened if s.predicted_gain >= needed}, scorers)
 
 
-def stage_scorer(state: DiscoveryState, stage: str, base: np.ndarray | None = None
-                 ) -> StageScorer:
+def stage_scorer(state: DiscoveryState, stage: str, base: np.ndarray | None = None,
+                 tests: list[PreparedTest] | None = None) -> StageScorer:
     """A stage's scorer as the rounds build it, at the model as it stands (or at
-    ``base``)."""
+    ``base``), on the stage's identification tests (or on ``tests``)."""
     settings = state.settings
-    return StageScorer(state.model.stage_tests(stage, state.ids), stage,
+    tests = tests if tests is not None else state.model.stage_tests(stage, state.ids)
+    return StageScorer(tests, stage,
                        state.p if base is None else base,
                        state.scales, state.base.preid["upper"], settings.identify.decimate,
                        REFINE_NFEV, reset=state.compensating(),

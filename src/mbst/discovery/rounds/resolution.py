@@ -137,6 +137,26 @@ class RefitCheck:
                 "refit_relative_gain_carried": self.carried[0] if self.carried else None}
 
 
+@dataclass(frozen=True)
+class InjectionCheck:
+    """A stated limit tested as the structure test would meet it (``rounds/limits.py``):
+    the effect at the limit size added to the stage's measured data and scored there."""
+
+    multiple: float
+    other_side: bool
+    values: dict[str, float]  # headline -> the size injected
+    share: float  # of the injected stage's cost the structure test's refit removed
+    aic_delta: float
+    recovered: bool  # that refit cleared the margins
+    refit_values: dict[str, float]  # headline -> where the refit ended
+
+    def record(self) -> dict:
+        return {"multiple": self.multiple, "other_side": self.other_side,
+                "parameters": self.values, "relative_gain": self.share,
+                "aic_delta": self.aic_delta, "recovered": self.recovered,
+                "refit_parameters": self.refit_values}
+
+
 @dataclass
 class Resolution:
     """What the campaign's tests can show of one (effect, component) pair."""
@@ -158,6 +178,8 @@ class Resolution:
     # more than this pair, and a refit may take more of the effect than predicted
     stage_over_floor: float | None = None
     refit: RefitCheck | None = None
+    # the limit on the refit's side, injected into the data (``rounds/limits.py``)
+    injection: InjectionCheck | None = None
 
     @property
     def resolved_at_realistic_size(self) -> bool:
@@ -185,6 +207,8 @@ class Resolution:
                                  "sizes": [s.record() for s in self.other_side]}
         if self.refit is not None:
             rec["refit_check"] = self.refit.record()
+        if self.injection is not None:
+            rec["injection_check"] = self.injection.record()
         return rec
 
 

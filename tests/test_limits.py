@@ -1,0 +1,136 @@
+"""Stated detection limits checked by injection (``discovery/rounds/limits.py``)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mbst.discovery.rounds import limits
+from mbst.discovery.rounds.resolution import InjectionCheck, RefitCheck, Resolution, SizeScore
+from mbst.discovery.state import DiscoverSettings
+from mbst.identify.fitting import channel_scales, prepare_test
+from mbst.io.campaign import read_campaign
+from mbst.report.discovery import limit_text, resolution_table
+from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
+from mbst.systems.eps.model import EPS_MODEL
+
+
+def _pair(key: str, refit_share: float, resolved_from: float | None = 0.1,
+          refit_round: int | None = None, at_one: float = 0.9) -> Resolution:
+    """A pair stated resolved from ``resolved_from``, whose structure-test refit removed
+    ``refit_share`` of its stage at the stiff end of its range."""
+    spec = EPS_MODEL.effects[key]
+    h = next(iter(spec.headline))
+    sizes = [SizeScore(m, {h: 20.0 / m}, min(1.0, at_one * m), -500.0 * m)
+             for m in (0.1, 0.5, 1.0)]
+    r = Resolution(key, spec.effect, spec.component, "free_tie_rods", [h], sizes,
+                   resolved_from=resolved_from, aic_drop_needed=10.4)
+    r.refit = RefitCheck(SizeScore(0.001, {h: 2e4}, 0.0, 0.0), refit_share, 2.0, False,
+                         refit_round)
+    return r
+
+
+def _injection(recovered: bool, share: float) -> InjectionCheck:
+    return InjectionCheck(0.1, False, {"stiffness": 20.0}, share, -80.0 if recovered else 2.0,
+                          recovered, {"stiffness": 22.0 if recovered else 2e4})
+
+
+def test_a_limit_the_structure_test_does_not_recover_when_injected_is_withheld(monkeypatch):
+    """Realistic rig 2512: a motor presliding of stiffness 5.6 missed beside a stick-slip
+    rack Stribeck while the limit read "from stiffness 20 down"; the effect added to that
+    campaign's data at stiffness 2.0 was refitted to the stiff end, 0.1 % of its stage.
+    Each limit the last round's refit left untested is injected; one not recovered is
+    withheld on both sides and the report says why; one recovered stands, said as
+    checked."""
+    missed = _pair("presliding_hysteresis:motor", 0.0, at_one=0.93)
+    seen = _pair("presliding_hysteresis:rack", 0.001)
+    earlier = _pair("asymmetric_friction:rack", 0.0, refit_round=1)  # another model's refit
+    cleared = _pair("asymmetric_friction:motor", 0.38)  # its refit tested the limit itself
+    cleared.refit = RefitCheck(cleared.refit.predicted, 0.38, -90.0, False)
+    stribeck = _pair("stribeck_friction:motor", 0.0)  # the envelope's, not a refit's
+    unresolved = _pair("power_law_damping:motor", 0.0, resolved_from=None)
+    injected = {"presliding_hysteresis:motor": _injection(False, 0.001),
+                "presliding_hysteresis:rack": _injection(True, 0.44)}
+    monkeypatch.setattr(limits, "injected_limit", lambda state, r, p: injected[r.key])
+    state = SimpleNamespace(resolution=[missed, seen, earlier, cleared, stribeck, unresolved],
+                            settings=DiscoverSettings(), p=np.zeros(1), p_searched=None,
+                            model=EPS_MODEL, failures=[])
+    limits.check_limits(state)
+    assert [r.key for r in state.resolution if r.injection is not None] == [
+        "presliding_hysteresis:motor", "presliding_hysteresis:rack"]
+    assert missed.resolved_from is None and missed.other_side_resolved_from is None
+    assert not missed.resolved_at_realistic_size
+    text = limit_text(missed, False)
+    assert text.startswith("**no limit stated**: predicted from stiffness = 20")
+    assert "refitted by the structure test to stiffness = 2e+04" in text
+    assert "0.1 % of its stage" in text and "would not have named it" in text
+    assert seen.resolved_from == 0.1
+    assert limit_text(seen, False).endswith(
+        "(checked: added at that size to these data, the structure test's refit removed "
+        "44.0 % of its stage, ΔAIC -80)")
+    assert earlier.resolved_from == cleared.resolved_from == stribeck.resolved_from == 0.1
+    table = resolution_table([missed])
+    row = table[table.side == "injected"]
+    assert row.injected_relative_gain.item() == 0.001 and not row.injected_recovered.item()
+    assert missed.record()["injection_check"]["recovered"] is False
+
+
+def test_limit_checks_are_capped_least_found_first_and_a_failed_one_costs_itself(monkeypatch):
+    pairs = [_pair("presliding_hysteresis:motor", 0.02), _pair("presliding_hysteresis:rack", 0.0),
+             _pair("asymmetric_friction:rack", 0.0, at_one=0.5),
+             _pair("asymmetric_friction:motor", 0.01), _pair("backlash:worm_gear", 0.03),
+             _pair("power_law_damping:rack", 0.0, at_one=0.7)]
+    order = []
+
+    def inject(state, r, p):
+        order.append(r.key)
+        if r.key == "asymmetric_friction:rack":
+            raise RuntimeError("diverged")
+        return _injection(True, 0.3)
+
+    monkeypatch.setattr(limits, "injected_limit", inject)
+    state = SimpleNamespace(resolution=pairs, settings=DiscoverSettings(), p=np.zeros(1),
+                            p_searched=None, model=EPS_MODEL, failures=[])
+    limits.check_limits(state)
+    assert order == ["presliding_hysteresis:rack", "power_law_damping:rack",
+                     "asymmetric_friction:rack", "asymmetric_friction:motor"]
+    assert len(order) == limits.MAX_INJECTION_CHECKS
+    assert state.failures == ["limit check of asymmetric_friction:rack: RuntimeError: diverged"]
+    assert pairs[2].resolved_from == 0.1 and pairs[2].injection is None
+
+
+@pytest.fixture(scope="module")
+def clean_compact_state(tmp_path_factory):
+    """The compact plan's clean rig at its true parameters: what discovery's rounds see
+    when the model as it stands is right."""
+    recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())
+    camp = read_campaign(run_bench(tmp_path_factory.mktemp("clean"), recipe))
+    ids = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()]
+    return SimpleNamespace(model=EPS_MODEL, ids=ids, p=recipe.true_params(), p_searched=None,
+                           scales=channel_scales(ids), base=SimpleNamespace(preid={"upper": {}}),
+                           settings=DiscoverSettings(), compensating=dict,
+                           model_free=lambda stage: None)
+
+
+@pytest.mark.parametrize("key, multiple, recovered", [
+    ("asymmetric_friction:rack", 0.3, True),
+    # a stick-slip: its break-away instants hang on the noise, so no output-error refit
+    # recovers it (the phase-free round's, and exempt from the check for that reason)
+    ("stribeck_friction:rack", 1.0, False),
+])
+def test_an_injected_effect_is_recovered_as_the_structure_test_meets_it(
+        clean_compact_state, key, multiple, recovered):
+    spec = EPS_MODEL.effects[key]
+    r = Resolution(key, spec.effect, spec.component, "free_tie_rods", [], [],
+                   resolved_from=multiple, aic_drop_needed=10.4)
+    r.refit = RefitCheck(SizeScore(0.0, {}, 0.0, 0.0), 0.0, 0.0, False)
+    check = limits.injected_limit(clean_compact_state, r, clean_compact_state.p)
+    assert check.recovered is recovered
+    if recovered:
+        # the refit finds the size injected, not merely some gain
+        assert check.share > 0.5
+        assert check.refit_values["ratio"] == pytest.approx(check.values["ratio"], rel=0.02)
+    else:
+        assert check.share < 0.01
