@@ -71,6 +71,11 @@ def test_a_limit_the_structure_test_does_not_recover_when_injected_is_withheld(m
         "(checked: added at that size to these data, the structure test's refit removed "
         "44.0 % of its stage, ΔAIC -80)")
     assert earlier.resolved_from == cleared.resolved_from == stribeck.resolved_from == 0.1
+    from mbst.report.discovery_figures import _side_label  # the figure says it too
+
+    assert _side_label(missed, False) == "no limit stated (added at 0.1×, its refit removed 0 %)"
+    assert _side_label(missed, True) == "no limit stated either"
+    assert _side_label(seen, False) == "from ≤ 0.1×"
     table = resolution_table([missed])
     row = table[table.side == "injected"]
     assert row.injected_relative_gain.item() == 0.001 and not row.injected_recovered.item()

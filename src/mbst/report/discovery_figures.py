@@ -157,13 +157,20 @@ def resolution_bars(result, path: Path) -> bool:
 
 def _side_label(r, other_side: bool) -> str:
     """One side's label: its limit, or why none is stated where the structure test's own
-    refit contradicts the prediction (``resolution.RefitCheck``)."""
+    refit contradicts the prediction (``resolution.RefitCheck``) or did not recover the
+    effect added at the limit (``resolution.InjectionCheck``)."""
     c = r.refit
     if c is not None and c.contradicts and c.other_side == other_side:
         return (f"no limit stated (its refit removed {100 * c.refit_share:.0f} % where "
                 f"{100 * c.predicted.share:.0f} % is predicted)")
     if c is not None and c.contradicts:
         return "no limit stated either"
+    inj = r.injection
+    if inj is not None and not inj.recovered:
+        # the effect at the limit, added to the data, was not recovered (``rounds/limits.py``)
+        return (f"no limit stated (added at {inj.multiple:g}×, its refit removed "
+                f"{100 * inj.share:.0f} %)" if inj.other_side == other_side
+                else "no limit stated either")
     if other_side:
         return _limit_label(r.other_side, r.other_side_resolved_from, False)
     return _limit_label(r.sizes, r.resolved_from)
