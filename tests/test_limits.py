@@ -104,6 +104,15 @@ def test_limit_checks_are_capped_least_found_first_and_a_failed_one_costs_itself
     assert len(order) == limits.MAX_INJECTION_CHECKS
     assert state.failures == ["limit check of asymmetric_friction:rack: RuntimeError: diverged"]
     assert pairs[2].resolved_from == 0.1 and pairs[2].injection is None
+    # a limit the cap left unchecked stands, and says so
+    skipped = [r for r in pairs if r.injection_skipped]
+    assert [r.key for r in skipped] == ["presliding_hysteresis:motor", "backlash:worm_gear"]
+    assert "not checked" in limit_text(skipped[0], False)
+    assert skipped[0].record()["injection_check"] == "skipped"
+    # refits that found less than 0.1 % of their stage count as having found nothing alike
+    tie = [_pair("presliding_hysteresis:rack", 4e-5, at_one=0.5),
+           _pair("presliding_hysteresis:motor", 0.0, at_one=0.9)]
+    assert sorted(tie, key=limits._least_found_first)[0].key == "presliding_hysteresis:motor"
 
 
 @pytest.fixture(scope="module")

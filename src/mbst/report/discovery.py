@@ -486,6 +486,9 @@ def limit_text(r: Resolution, other_side: bool) -> str:
     checked = "" if inj is None or inj.other_side != other_side else (
         f" (checked: added at that size to these data, the structure test's refit removed "
         f"{100 * inj.share:.1f} % of its stage, ΔAIC {inj.aic_delta:.0f})")
+    if r.injection_skipped and (c is None or c.other_side == other_side):
+        checked = (" (not checked: its refit did not clear the margins either, and the "
+                   "injection checks went to pairs whose refit found less)")
     return f"{bound}, " + (
         f"{weaker} the realistic size" if limit.multiple < 1 else
         "the realistic size" if limit.multiple == 1 else

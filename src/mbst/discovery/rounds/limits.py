@@ -19,7 +19,7 @@ stage's measured data, and the candidate is scored there from its own starts
 checked; not recovered, the limit is withheld on both sides (they come from one
 linearisation), and the pair counts as not resolved. The checks cost a candidate's refit
 each, so at most ``MAX_INJECTION_CHECKS`` run per campaign, the pairs whose refit found
-least first.
+least first; a limit left unchecked by that cap is said to be.
 """
 
 from __future__ import annotations
@@ -64,6 +64,8 @@ def check_limits(state: DiscoveryState) -> None:
     p = state.p_searched if state.p_searched is not None else state.p
     todo = sorted((r for r in state.resolution if untested_limit(r, min_gain, state.model)),
                   key=_least_found_first)
+    for r in todo[MAX_INJECTION_CHECKS:]:
+        r.injection_skipped = True  # its limit stands unchecked, and the report says so
     for r in todo[:MAX_INJECTION_CHECKS]:
         try:
             r.injection = injected_limit(state, r, p)
@@ -92,9 +94,10 @@ def untested_limit(r: Resolution, min_gain: float, model: ModelDefinition) -> bo
 
 
 def _least_found_first(r: Resolution) -> tuple[float, float, str]:
-    """The refit that found least first; then the limit claimed most plainly."""
+    """The refit that found least first (to 0.1 % of its stage: below, the order would
+    follow rounding); then the limit claimed most plainly."""
     at_one = r.size_at(1.0)
-    return r.refit.refit_share, -(at_one.share if at_one else 0.0), r.key
+    return round(r.refit.refit_share, 3), -(at_one.share if at_one else 0.0), r.key
 
 
 def injected_limit(state: DiscoveryState, r: Resolution, p: np.ndarray) -> InjectionCheck:

@@ -180,6 +180,7 @@ class Resolution:
     refit: RefitCheck | None = None
     # the limit on the refit's side, injected into the data (``rounds/limits.py``)
     injection: InjectionCheck | None = None
+    injection_skipped: bool = False  # such a check was due and the cap left it out
 
     @property
     def resolved_at_realistic_size(self) -> bool:
@@ -209,6 +210,8 @@ class Resolution:
             rec["refit_check"] = self.refit.record()
         if self.injection is not None:
             rec["injection_check"] = self.injection.record()
+        elif self.injection_skipped:
+            rec["injection_check"] = "skipped"
         return rec
 
 
