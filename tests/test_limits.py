@@ -33,8 +33,10 @@ def _pair(key: str, refit_share: float, resolved_from: float | None = 0.1,
 
 
 def _injection(recovered: bool, share: float) -> InjectionCheck:
-    return InjectionCheck(0.1, False, {"stiffness": 20.0}, share, -80.0 if recovered else 2.0,
-                          recovered, {"stiffness": 22.0 if recovered else 2e4})
+    """A check at the realistic size (stiffness 2) of a limit stated at stiffness 20."""
+    return InjectionCheck(1.0, False, {"stiffness": 2.0}, share, -80.0 if recovered else 2.0,
+                          recovered, {"stiffness": 2.2 if recovered else 2e4},
+                          {"stiffness": 20.0})
 
 
 def test_a_limit_the_structure_test_does_not_recover_when_injected_is_withheld(monkeypatch):
@@ -63,17 +65,18 @@ def test_a_limit_the_structure_test_does_not_recover_when_injected_is_withheld(m
     assert missed.resolved_from is None and missed.other_side_resolved_from is None
     assert not missed.resolved_at_realistic_size
     text = limit_text(missed, False)
-    assert text.startswith("**no limit stated**: predicted from stiffness = 20")
-    assert "refitted by the structure test to stiffness = 2e+04" in text
+    assert text.startswith("**no limit stated**: predicted from stiffness = 20, but the effect "
+                           "at the realistic size (stiffness = 2), added to these data, was "
+                           "refitted by the structure test to stiffness = 2e+04")
     assert "0.1 % of its stage" in text and "would not have named it" in text
     assert seen.resolved_from == 0.1
     assert limit_text(seen, False).endswith(
-        "(checked: added at that size to these data, the structure test's refit removed "
-        "44.0 % of its stage, ΔAIC -80)")
+        "(checked: added at the realistic size (stiffness = 2) to these data, the structure "
+        "test's refit removed 44.0 % of its stage, ΔAIC -80)")
     assert earlier.resolved_from == cleared.resolved_from == stribeck.resolved_from == 0.1
     from mbst.report.discovery_figures import _side_label  # the figure says it too
 
-    assert _side_label(missed, False) == "no limit stated (added at 0.1×, its refit removed 0 %)"
+    assert _side_label(missed, False) == "no limit stated (added at 1×, its refit removed 0 %)"
     assert _side_label(missed, True) == "no limit stated either"
     assert _side_label(seen, False) == "from ≤ 0.1×"
     table = resolution_table([missed])
@@ -142,6 +145,10 @@ def test_an_injected_effect_is_recovered_as_the_structure_test_meets_it(
     r.refit = RefitCheck(SizeScore(0.0, {}, 0.0, 0.0), 0.0, 0.0, False)
     check = limits.injected_limit(clean_compact_state, r, clean_compact_state.p)
     assert check.recovered is recovered
+    # a limit below the realistic size is checked at the realistic size, and kept beside it
+    assert check.multiple == max(multiple, 1.0)
+    if key == "asymmetric_friction:rack":
+        assert check.values["ratio"] == 1.6 and check.limit_values["ratio"] == pytest.approx(1.18)
     if recovered:
         # the refit finds the size injected, not merely some gain
         assert check.share > 0.5

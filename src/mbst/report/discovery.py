@@ -484,8 +484,8 @@ def limit_text(r: Resolution, other_side: bool) -> str:
         bound = f"from {size_text(limit, r.size_parameters)}" + (" down" if falls else "")
     weaker = "weaker than" if falls else "below"
     checked = "" if inj is None or inj.other_side != other_side else (
-        f" (checked: added at that size to these data, the structure test's refit removed "
-        f"{100 * inj.share:.1f} % of its stage, ΔAIC {inj.aic_delta:.0f})")
+        f" (checked: added at {_injected_text(r, inj)} to these data, the structure test's "
+        f"refit removed {100 * inj.share:.1f} % of its stage, ΔAIC {inj.aic_delta:.0f})")
     if r.injection_skipped and (c is None or c.other_side == other_side):
         checked = (" (not checked: its refit did not clear the margins either, and the "
                    "injection checks went to pairs whose refit found less)")
@@ -500,13 +500,21 @@ def _not_recovered_text(r: Resolution, inj, other_side: bool) -> str:
     if inj.other_side != other_side:
         return ("**no limit stated** either: the limit on the other side, added to these "
                 "data, was not recovered, and both come from one prediction")
-    size = ", ".join(f"{k} = {v:.3g}" for k, v in inj.values.items() if k in r.size_parameters)
+    limit = ", ".join(f"{k} = {v:.3g}" for k, v in inj.limit_values.items()
+                      if k in r.size_parameters)
+    predicted = f"predicted from {limit}, " if limit else ""
     ended = ", ".join(f"{k} = {v:.3g}" for k, v in inj.refit_values.items()
                       if k in r.size_parameters)
-    return (f"**no limit stated**: predicted from {size}, but the effect at that size, added "
-            f"to these data, was refitted by the structure test to {ended} and removed "
+    return (f"**no limit stated**: {predicted}but the effect at {_injected_text(r, inj)}, "
+            f"added to these data, was refitted by the structure test to {ended} and removed "
             f"{100 * inj.share:.1f} % of its stage (ΔAIC {inj.aic_delta:.0f}): these tests "
             "would not have named it, so they do not rule it out")
+
+
+def _injected_text(r: Resolution, inj) -> str:
+    """The size a limit check added: its values, and the realistic size said as such."""
+    size = ", ".join(f"{k} = {v:.3g}" for k, v in inj.values.items() if k in r.size_parameters)
+    return f"the realistic size ({size})" if inj.multiple == 1.0 else size
 
 
 def _grows_as_it_falls(sizes: list, size_parameters: list[str]) -> bool:

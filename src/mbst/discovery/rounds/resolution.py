@@ -149,12 +149,13 @@ class InjectionCheck:
     aic_delta: float
     recovered: bool  # that refit cleared the margins
     refit_values: dict[str, float]  # headline -> where the refit ended
+    limit_values: dict[str, float] = field(default_factory=dict)  # headline -> the limit
 
     def record(self) -> dict:
         return {"multiple": self.multiple, "other_side": self.other_side,
                 "parameters": self.values, "relative_gain": self.share,
                 "aic_delta": self.aic_delta, "recovered": self.recovered,
-                "refit_parameters": self.refit_values}
+                "refit_parameters": self.refit_values, "limit_parameters": self.limit_values}
 
 
 @dataclass
