@@ -362,7 +362,7 @@ def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
     # side: "realistic" for the realistic size's side of neutral, "other" for the other
     # side of an effect that acts either way (a power-law exponent above 1), "refit" the
     # prediction at the size the structure test's refit reached (``RefitCheck``),
-    # "injected" the prediction at the limit added to the data (``rounds/limits.py``)
+    # "injected" the prediction at the size the limit check added to the data (``limits.py``)
     return pd.DataFrame([
         {"effect": r.effect, "component": r.component, "stage": r.stage, "side": side,
          "multiple_of_realistic_size": s.multiple,
@@ -382,7 +382,7 @@ def resolution_table(resolution: list[Resolution]) -> pd.DataFrame:
 
 
 def _injected_size(r: Resolution) -> list:
-    """The prediction at the size the limit check injected (none where it did not run)."""
+    """The prediction at the size the limit check added (none where it did not run)."""
     inj = r.injection
     if inj is None:
         return []

@@ -18,9 +18,9 @@ data, and the candidate is scored there from its own starts (``StageScorer.score
 size added is the realistic one where the limit lies below it, else the limit: "shown at
 its realistic size" is the statement relied on most, and a stronger effect is not always
 the easier to find (on 2512 the same motor presliding added at stiffness 20, ten times
-weaker, was recovered, 19.6 % of the stage). Recovered, it clears the margins and the limit stands, said as
-checked; not recovered, the limit is withheld on both sides (they come from one
-linearisation), and the pair counts as not resolved. The checks cost a candidate's refit
+weaker, was recovered, 19.6 % of the stage). Recovered, it clears the margins and the
+limit stands, said as checked; not recovered, the limit is withheld on both sides (they
+come from one linearisation), and the pair counts as not resolved. The checks cost a candidate's refit
 each, so at most ``MAX_INJECTION_CHECKS`` run per campaign, the pairs whose refit found
 least first; a limit left unchecked by that cap is said to be.
 """
@@ -48,7 +48,8 @@ from mbst.identify.fitting import PreparedTest, twins_of_tests
 
 log = logging.getLogger(__name__)
 
-# a check costs about one candidate's refit (10-100 s on a realistic rig's free tie-rods)
+# a check costs about one candidate's score: 10-20 s on a clean realistic rig's free
+# tie-rods, 100-230 s in a stick-slip stage (rig 2512)
 MAX_INJECTION_CHECKS = 4
 
 
@@ -118,9 +119,9 @@ def injected_limit(state: DiscoveryState, r: Resolution, p: np.ndarray) -> Injec
     q = np.array(p, float)
     for n, v in scaled_size(spec, model, multiple, side).items():
         q[model.param_index[n]] = v
-    limit = {**{h: float(p[model.param_index[n]]) for h, n in spec.headline.items()},
-             **{h: v for h, n in spec.headline.items()
-                for m, v in scaled_size(spec, model, stated, side).items() if m == n}}
+    at_limit = scaled_size(spec, model, stated, side)
+    limit = {h: float(at_limit.get(n, p[model.param_index[n]]))
+             for h, n in spec.headline.items()}
     # a power law's size keeps the stage's damping force, as the resolution step's rows do
     q = stage_scorer(state, r.stage, p).keep_damping_force(q[None], p, spec)[0]
     scorer = stage_scorer(state, r.stage, p, with_signal(model.stage_tests(r.stage, state.ids),
