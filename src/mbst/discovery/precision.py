@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mbst.core.model import EffectSpec, ModelDefinition
+from mbst.discovery.rounds.catalogue import stage_scorer
 from mbst.discovery.state import DiscoveryState, Finding
-from mbst.discovery.structure import StageScorer
 from mbst.identify.fitting import FitResult, precision_at
 
 log = logging.getLogger(__name__)
@@ -74,8 +74,8 @@ def _partner(corr: np.ndarray, free: list[str], name: str) -> tuple[str, float] 
     j = free.index(name)
     row = np.abs(np.nan_to_num(corr[j]))
     row[j] = 0.0
-    k = int(np.argmax(row)) if row.size else 0
-    if row.size and row[k] >= TRADE_OFF_CORRELATION:
+    k = int(np.argmax(row))
+    if row[k] >= TRADE_OFF_CORRELATION:
         return free[k], float(corr[j, k])
     return None
 
@@ -109,10 +109,9 @@ def state_size_precision(findings: list[Finding], state: DiscoveryState) -> None
 
 
 def _stage_fit(state: DiscoveryState, stage: str) -> tuple[FitResult, list[str]]:
-    """The stage's free parameters' precision at the extended model, and their order."""
-    scorer = StageScorer(state.model.stage_tests(stage, state.ids), stage, state.p,
-                         state.scales, decimate=state.settings.identify.decimate,
-                         free=state.model_free(stage))
+    """The stage's free parameters' precision at the extended model (its scorer as the
+    rounds build it: the same free set, weights and bounds), and their order."""
+    scorer = stage_scorer(state, stage)
     free = list(scorer.stage_free)
     return precision_at(scorer.problem(free, state.p), state.p), free
 

@@ -496,7 +496,7 @@ def limit_text(r: Resolution, other_side: bool) -> str:
 
 
 def _not_recovered_text(r: Resolution, inj, other_side: bool) -> str:
-    """A limit withheld because the effect at it, added to the data, was not recovered."""
+    """A limit withheld because the effect, added to the data, was not recovered."""
     if inj.other_side != other_side:
         return ("**no limit stated** either: the limit on the other side, added to these "
                 "data, was not recovered, and both come from one prediction")

@@ -167,7 +167,7 @@ def _side_label(r, other_side: bool) -> str:
         return "no limit stated either"
     inj = r.injection
     if inj is not None and not inj.recovered:
-        # the effect at the limit, added to the data, was not recovered (``rounds/limits.py``)
+        # the effect, added to the data, was not recovered (``rounds/limits.py``)
         return (f"no limit stated (added at {inj.multiple:g}×, its refit removed "
                 f"{100 * inj.share:.0f} %)" if inj.other_side == other_side
                 else "no limit stated either")

@@ -140,11 +140,12 @@ class RefitCheck:
 @dataclass(frozen=True)
 class InjectionCheck:
     """A stated limit tested as the structure test would meet it (``rounds/limits.py``):
-    the effect at the limit size added to the stage's measured data and scored there."""
+    the effect added to the stage's measured data, at the realistic size where the limit
+    lies below it (else at the limit), and scored there."""
 
     multiple: float
     other_side: bool
-    values: dict[str, float]  # headline -> the size injected
+    values: dict[str, float]  # headline -> the size added
     share: float  # of the injected stage's cost the structure test's refit removed
     aic_delta: float
     recovered: bool  # that refit cleared the margins
@@ -179,7 +180,7 @@ class Resolution:
     # more than this pair, and a refit may take more of the effect than predicted
     stage_over_floor: float | None = None
     refit: RefitCheck | None = None
-    # the limit on the refit's side, injected into the data (``rounds/limits.py``)
+    # the limit on the refit's side, checked by adding the effect to the data (``limits.py``)
     injection: InjectionCheck | None = None
     injection_skipped: bool = False  # such a check was due and the cap left it out
 
