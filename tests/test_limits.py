@@ -155,3 +155,34 @@ def test_an_injected_effect_is_recovered_as_the_structure_test_meets_it(
         assert check.refit_values["ratio"] == pytest.approx(check.values["ratio"], rel=0.02)
     else:
         assert check.share < 0.01
+
+
+def test_sizes_above_the_realistic_one_are_tried_only_where_it_is_not_resolved(
+        clean_compact_state):
+    """The limit is the smallest size resolved: a pair resolved at or below its realistic
+    size is not simulated at 1.5-4x (a Stribeck dip there needs many times the sub-steps),
+    one that is not resolved there is, and the sizes both ways score alike."""
+    from mbst.discovery.rounds import resolution
+
+    st = clean_compact_state
+    stage = "blocked_column"
+    specs = [EPS_MODEL.effects[k] for k in ("stiffness_limit_stop:torsion_bar",
+                                            "stribeck_friction:steering_column")]
+    tests = EPS_MODEL.stage_tests(stage, st.ids)
+    margin = (0.1, 10.4)
+    lazy = resolution.stage_resolution(tests, stage, specs, st.p, st.scales, None,
+                                       margins=lambda spec: margin)
+    full = resolution.stage_resolution(tests, stage, specs, st.p, st.scales, None)
+    for a, b in zip(lazy, full, strict=True):
+        resolved_small = any(s.clears(*margin) for s in b.sizes if s.multiple <= 1.0)
+        tried = [s.multiple for s in a.sizes]
+        assert tried == [s.multiple for s in b.sizes
+                         if s.multiple <= 1.0 or not resolved_small], a.key
+        for s in a.sizes:
+            twin = b.size_at(s.multiple)
+            assert s.share == pytest.approx(twin.share, rel=1e-9, abs=1e-12)
+    stop, stribeck = lazy
+    # the compact plan shows the stop far below its realistic size, the column's Stribeck
+    # rise only above it (the module doc of resolution.py)
+    assert max(s.multiple for s in stop.sizes) == 1.0
+    assert max(s.multiple for s in stribeck.sizes) == 4.0

@@ -133,8 +133,13 @@ def resolution_bars(result, path: Path) -> bool:
               "tab:orange" if r.resolved_from else "tab:gray" for r in res]
     ax.barh(y, [100 * r.size_at(1.0).share for r in res], color=colors)
     most = max(s.multiple for r in res for s in r.sizes)
-    ax.scatter([100 * r.sizes[-1].share for r in res], y, marker="|", s=120, color="black",
-               zorder=3, label=f"at the largest size tried ({most:g}× or the bound)")
+    # sizes above the realistic one are tried only where it is not resolved
+    beyond = [(k, r.sizes[-1]) for k, r in enumerate(res) if r.sizes[-1].multiple > 1.0]
+    if beyond:
+        ax.scatter([100 * s.share for _, s in beyond], [k for k, _ in beyond], marker="|",
+                   s=120, color="black", zorder=3,
+                   label=f"at the largest size tried ({most:g}× or the bound), where the "
+                         "realistic size is not resolved")
     ax.set_yticks(y, [f"{r.key} ({r.stage}) — " + _side_label(r, False) + (
         "; the other way " + _side_label(r, True) if r.other_side else "") for r in res],
         fontsize=7)

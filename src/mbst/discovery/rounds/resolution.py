@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -304,7 +305,9 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
                      p: np.ndarray, scales: dict[str, float], free: list[str] | None,
                      decimate: int = 2, reset: dict[str, float] | None = None,
                      multiples: tuple[float, ...] = SIZE_MULTIPLES,
-                     refits: dict[str, Refit] | None = None) -> list[Resolution]:
+                     refits: dict[str, Refit] | None = None,
+                     margins: Callable[[EffectSpec], tuple[float, float]] | None = None
+                     ) -> list[Resolution]:
     """Predicted scores of ``specs`` at each size on one stage's tests (see module doc), and
     at the size the structure test's refit of a pair reached where ``refits`` has it.
 
@@ -314,6 +317,12 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
     fit holds the motor's Coulomb level at 0.004 N·m (true 0.025; the rack,
     one body with it, carries the rest), where a motor Dahl term barely shows
     (0.4 % of the stage cost) although the rig's shows plainly (28 %).
+
+    With ``margins`` (a pair's share and Akaike drop to clear), sizes above the realistic
+    one are tried only on a side where no size up to it clears them: the limit is the
+    smallest size resolved, and a Stribeck dip at 4× needs 80 times the sub-steps of its
+    realistic size (on the demo, the larger sizes of pairs resolved below 1× were half the
+    round's simulations).
     """
     scorer = StageScorer(tests, stage, p, scales, decimate=decimate, free=free, reset=reset)
     model = scorer.model
@@ -321,16 +330,34 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
     n_eff = scorer.residual_n_eff(p)
     points = [p] + ([scorer.reset_start(p)] if scorer.reset else [])
     bases = [column_basis(refit_jacobian(scorer, q)) for q in points]
-    # every size of every pair in one set of rows: the point itself is integrated once per
-    # step the rows need, not once per pair
-    sizes = [(spec, *size) for spec in specs
-             for side in ((False, True) if spec.other_side_size else (False,))
-             for size in _sizes(spec, model, multiples, side)]
     refits = refits or {}
-    # a refit's size: multiple NaN
+    sides = [(spec, side) for spec in specs
+             for side in ((False, True) if spec.other_side_size else (False,))]
+    small = tuple(m for m in multiples if margins is None or m <= 1.0)
+    # every size of every pair in one set of rows: the point itself is integrated once per
+    # step the rows need, not once per pair; a refit's size has multiple NaN
+    sizes = [(spec, *size) for spec, side in sides for size in _sizes(spec, model, small, side)]
     sizes += [(spec, False, math.nan, refits[spec.key].values) for spec in specs
               if spec.key in refits]
-    energy = np.full(len(sizes), np.nan)  # NaN: no finite twin at that size
+    scored = list(zip(sizes, _energies(scorer, points, bases, sizes), strict=True))
+    if margins is not None:
+        done = {(sp.key, other) for (sp, other, m, _), e in scored
+                if not math.isnan(m) and not np.isnan(e) and SizeScore(
+                    m, {}, *predicted_score(cost, e, n_eff, len(sp.free))).clears(*margins(sp))}
+        more = [(spec, *size) for spec, side in sides if (spec.key, side) not in done
+                for size in _sizes(spec, model, multiples, side) if size[1] > 1.0]
+        scored += list(zip(more, _energies(scorer, points, bases, more), strict=True))
+    return _resolutions(scorer, stage, specs, p, refits, scored, cost, n_eff)
+
+
+def _energies(scorer: StageScorer, points: list[np.ndarray], bases: list[np.ndarray],
+              sizes: list[tuple]) -> np.ndarray:
+    """The energy each size's signal leaves beyond the linearised refit, the larger over
+    ``points`` (NaN: no finite twin at that size)."""
+    model = scorer.model
+    energy = np.full(len(sizes), np.nan)
+    if not sizes:
+        return energy
     for q, basis in zip(points, bases, strict=True):
         rows = np.repeat(q[None], len(sizes), axis=0)
         for i, (spec, _, _, values) in enumerate(sizes):
@@ -345,13 +372,22 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
             if np.all(np.isfinite(di)):
                 left = di - basis @ (basis.T @ di)
                 energy[i] = np.fmax(energy[i], 0.5 * float(left @ left))
+    return energy
+
+
+def _resolutions(scorer: StageScorer, stage: str, specs: list[EffectSpec], p: np.ndarray,
+                 refits: dict[str, Refit], scored: list[tuple[tuple, float]], cost: float,
+                 n_eff: float) -> list[Resolution]:
+    """Each pair's ``Resolution`` from its sizes' energies (sizes in increasing multiple
+    on each side, as ``_sizes`` gives them)."""
+    model = scorer.model
     floor = scorer.noise_cost()
     out = {spec.key: Resolution(spec.key, spec.effect, spec.component, stage,
                                 [h for h, n in spec.headline.items()
                                  if n in model.size_parameters(spec)],
                                 stage_over_floor=cost / floor if floor > 0 else None)
            for spec in specs}
-    for (spec, other, m, values), e in zip(sizes, energy, strict=True):
+    for (spec, other, m, values), e in scored:
         if np.isnan(e):  # a size the simulator could not run says nothing
             continue
         res = out[spec.key]
@@ -423,7 +459,9 @@ def campaign_resolution(id_tests: list[PreparedTest], p: np.ndarray, scales: dic
             by_stage.setdefault(stage, []).append(spec)
     for stage, specs in by_stage.items():
         out += stage_resolution(model.stage_tests(stage, id_tests), stage, specs, p, scales,
-                                stage_free.get(stage), decimate, reset, refits=refits)
+                                stage_free.get(stage), decimate, reset, refits=refits,
+                                margins=lambda spec: (min_gain, aic_drop_needed(
+                                    len(spec.free), len(model.catalogue), min_aic_drop)))
     for r in out:
         r.aic_drop_needed = drop = aic_drop_needed(len(model.effects[r.key].free),
                                                    len(model.catalogue), min_aic_drop)
