@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 
 import numpy as np
 import pytest
@@ -206,6 +207,8 @@ def test_the_network_trains_in_a_process_of_its_own_to_the_same_model(clean, cap
     with caplog.at_level("WARNING"):
         job = NeuralJob(ident, settings, EpsCandidateLibrary)
         assert isinstance(job._pool, ProcessPoolExecutor)
+        # ... at a lower priority than the refits it runs beside
+        assert job._pool.submit(os.nice, 0).result() >= min(os.nice(0) + 10, 19)
         model, ev = job.result()
     assert "trained in a thread" not in caplog.text  # the process did it, not the fallback
     here, ev_here = neural_evidence(ident, settings, EpsCandidateLibrary)
