@@ -321,8 +321,8 @@ def stage_resolution(tests: list[PreparedTest], stage: str, specs: list[EffectSp
     With ``margins`` (a pair's share and Akaike drop to clear), sizes above the realistic
     one are tried only on a side where no size up to it clears them: the limit is the
     smallest size resolved, and a Stribeck dip at 4× needs 80 times the sub-steps of its
-    realistic size (on the demo, the larger sizes of pairs resolved below 1× were half the
-    round's simulations).
+    realistic size (on the demo, the larger sizes of pairs resolved up to 1× were two
+    thirds of the round's time: 30 s, now 11 s).
     """
     scorer = StageScorer(tests, stage, p, scales, decimate=decimate, free=free, reset=reset)
     model = scorer.model
