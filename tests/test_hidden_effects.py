@@ -152,8 +152,9 @@ def test_clean_campaign_gives_no_finding(tmp_path_factory, seed):
 @pytest.mark.xfail(strict=True, reason=(
     "since 653b5c6 (a power law's starts keep its damping force) a rack power law "
     "(exponent 0.86) is named at confidence 0.05 beside the lag: with the torque lag "
-    "refitted in the free tie-rods stage it still removes 18 % of what the lag leaves; "
-    "not traced (benchmarks/README, stop 83)"))
+    "refitted in the free tie-rods stage it still removes 18 % of what the lag leaves. "
+    "With the lag stated known the answer is empty (the power law 1.2 %): it takes what "
+    "the lag leaves in the stages fitted upstream without it (benchmarks/README, stop 83)"))
 def test_a_torque_sensor_lag_is_not_named_as_a_catalogue_effect(tmp_path_factory):
     """eps-model.md: a torque sensor's own filter lags by a few ms, and discovery must not
     force it into a catalogue effect. The clean compact plan with a 3 ms lag on the torque
