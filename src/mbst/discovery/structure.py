@@ -327,19 +327,27 @@ class StageScorer:
                 [tw[0][f"internal.{name}"][::step] for tw in twins])
         return self._speeds[component]
 
-    def linearised_share(self, spec: EffectSpec) -> float:
+    def linearised_share(self, spec: EffectSpec, at_default_size: bool = False) -> float:
         """The share of the stage's cost a Gauss–Newton step in ``spec``'s parameters and
         the stage's own, within their search range, removes from the base refit: one
-        difference Jacobian where a refit takes several, to tell which refits can matter."""
+        difference Jacobian where a refit takes several, to tell which refits can matter.
+        ``at_default_size``: the step is taken from ``spec`` at its default size, for a
+        parameter the model is flat in at neutral."""
         p = self.base_refit()[0]
         free = list(spec.free) + self.stage_free
         prob = self.problem(free, p, bounds=spec.bounds)
-        u = prob.u_of(p)
-        r = prob.residuals(u)[: -len(free)]  # the prior's rows last
-        jac = prob.jacobian(u)[: -len(free)]
+        r = prob.residuals(prob.u_of(p))[: -len(free)]  # the prior's rows last
         rr = float(r @ r)
         if rr <= 0.0:
             return 0.0
+        if at_default_size:
+            q = p.copy()
+            for n, v in spec.default_size.items():
+                q[self.model.param_index[n]] = v
+            r = prob.residuals(prob.u_of(q))[: -len(free)]
+            p = q
+        u = prob.u_of(p)
+        jac = prob.jacobian(u)[: -len(free)]
         step = lsq_linear(jac, -r, bounds=(prob.lb - u, prob.ub - u))
         return float(max(0.0, 1.0 - 2.0 * step.cost / rr))
 
