@@ -942,8 +942,17 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
         return dataclasses.replace(best, cost_base=rival.cost, cost=left,
                        aic_delta=500.0 * math.log(left / rival.cost) + 2.0)
 
+    # with the lag carried through the whole cascade, the winner removes this share
+    through_gain = {"blocked_column": 0.30, "free_tie_rods": 0.30}
+
+    def through(state, best, rival, row):
+        row.update(stands=through_gain[best.stage] > 0.1,
+                   through_cascade={"relative_gain": through_gain[best.stage]})
+        row["reason"] += f", and with the lag carried through the cascade {through_gain}"
+
     monkeypatch.setattr(rivals_mod, "rivals", rivals)
     monkeypatch.setattr(rivals_mod, "beyond", beyond)
+    monkeypatch.setattr(catalogue_mod, "_beyond_the_lag_through_the_cascade", through)
     monkeypatch.setattr(catalogue_mod, "aic_drop", lambda state, k: 10.0)
     state = SimpleNamespace(settings=DiscoverSettings(), model=EPS_MODEL,
                             campaign=SimpleNamespace(known={}, priors={}), failures=[])
@@ -974,6 +983,17 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     assert "rival_declined" not in rec
     assert rec["rival_beyond"][0]["stands"] and "30.0 % of what the latter leaves" in \
         rec["rival_beyond"][0]["reason"]
+    # ... unless the lag, carried through the cascade, takes what it stood beyond: a lag
+    # biases the stages upstream too (the power law of the compact lag case, 2026-11-30)
+    through_gain["blocked_column"] = 0.02
+    rec3 = {"round": 3}
+    left, _ = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], rec3)
+    assert column not in left and rec3["rival_declined"][0]["key"] == column.key
+    assert not rec3["rival_beyond"][0]["stands"]
+    assert "through the cascade" in rec3["rival_beyond"][0]["reason"]
+    assert "beside the lag carried through the whole cascade it removes 2.0 %" in \
+        rec3["rival_declined"][0]["reason"]
+    through_gain["blocked_column"] = 0.30
     # a refit beside the rival that fails leaves the match (declined), and says so
     monkeypatch.setattr(rivals_mod, "beyond", lambda *a, **k: 1 / 0)
     rec2 = {"round": 2}

@@ -12,7 +12,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from mbst.discovery.state import total_cost
+from mbst.discovery import rivals
+from mbst.discovery.state import DiscoveryState, total_cost
 from mbst.discovery.structure import CandidateScore, StageScorer
 from mbst.identify.cascade import IdentifySettings, run_cascade
 from mbst.identify.fitting import PreparedTest, solve
@@ -77,3 +78,15 @@ def reset_extension_start(scorer: StageScorer, best: CandidateScore, spec
     fr = solve(scorer.problem(list(spec.free) + scorer.stage_free, q), [q],
                max_nfev=scorer.max_nfev)
     return fr.p if float(scorer.costs(fr.p[None])[0].sum()) < best.cost else None
+
+
+def rival_through_cascade(state: DiscoveryState, score: CandidateScore
+                          ) -> tuple[np.ndarray, float]:
+    """The cascade refitted from a rival's stage refit ``score`` (a sensor's lag, a drift
+    over the campaign), the rival free in its stage and held at its size in the others, and
+    its identification cost (or the start's, where that is lower)."""
+    trial_free = dict(state.extra_free)
+    trial_free[score.stage] = tuple(trial_free.get(score.stage, ())) + tuple(
+        n for n in score.free if n in rivals.parameters(state.model))
+    return extended_cascade(state.campaign, replace(state.settings.identify, multistart=1),
+                            state.ids, state.scales, [score.params], trial_free)

@@ -380,6 +380,11 @@ def _past_rivals(state: DiscoveryState, scorers: dict[str, StageScorer],
         if rival is None or _stands_beyond(state, scorers[best.stage], best, rival, rec):
             return scores, found
         gone = rivals.declined(best, rival, stated(state))
+        through = next((g["through_cascade"] for g in rec.get("rival_beyond", [])[-1:]
+                        if g["key"] == best.key and "through_cascade" in g), None)
+        if through is not None:  # it stood beside the lag in its stage alone
+            gone["reason"] += (f"; beside the lag carried through the whole cascade it removes "
+                               f"{100 * through['relative_gain']:.1f} % of the stage")
         log.info("round %d: %s", rec["round"], gone["reason"])
         rec.setdefault("rival_declined", []).append(gone)
         scores = [s for s in scores if s.stage != best.stage]
@@ -405,12 +410,46 @@ def _stands_beyond(state: DiscoveryState, scorer: StageScorer, best: CandidateSc
     said = (f"{best.key} with {rivals.label(rival.effect, rival.component)} in the stage "
             f"removes {100 * past.relative_gain:.1f} % of what the latter leaves (ΔAIC "
             f"{past.aic_delta:.0f})")
-    rec.setdefault("rival_beyond", []).append(
-        {"key": best.key, "rival": rival.key, "relative_gain": past.relative_gain,
-         "aic_delta": past.aic_delta, "stands": short is None, "reason": said})
-    log.info("round %d: %s: %s", rec["round"], said,
-             "the effect stands beyond it" if short is None else "matched")
-    return short is None
+    row = {"key": best.key, "rival": rival.key, "relative_gain": past.relative_gain,
+           "aic_delta": past.aic_delta, "stands": short is None, "reason": said}
+    rec.setdefault("rival_beyond", []).append(row)
+    if short is None and rival.effect == rivals.LAG:
+        try:
+            _beyond_the_lag_through_the_cascade(state, best, rival, row)
+        except Exception as exc:  # the in-stage check stands; the failure is reported
+            log.warning("round %d: the cascade with %s failed: %s: %s", rec["round"],
+                        rival.key, type(exc).__name__, exc)
+            state.failures.append(f"structure round {rec['round']} ({best.key} beside "
+                                  f"{rival.key} through the cascade): "
+                                  f"{type(exc).__name__}: {exc}")
+    log.info("round %d: %s: %s", rec["round"], row["reason"],
+             "the effect stands beyond it" if row["stands"] else "matched")
+    return row["stands"]
+
+
+def _beyond_the_lag_through_the_cascade(state: DiscoveryState, best: CandidateScore,
+                                        rival: CandidateScore, row: dict) -> None:
+    """Whether ``best`` still clears the margins in its stage once the sensor's lag that
+    matched it is carried through the whole cascade (``extension.rival_through_cascade``);
+    ``row`` (``_stands_beyond``'s record) says so. A lag biases every stage fitted on its
+    channel, and a refit of it in the winner's stage alone leaves what the stages upstream
+    took up without it: the compact plan with a 3 ms torque lag and nothing else (seed 1)
+    had a rack power law (exponent 0.86) still remove 18.0 % of what the lag left in the
+    free tie-rods, and named; with the lag in the whole cascade (stated known) the power
+    law removed 1.2 %. Where the cascade with the lag fits no better than the model as it
+    stands, the in-stage check holds."""
+    p_lag, cost = extension.rival_through_cascade(state, rival)
+    if cost >= state.cost:
+        return
+    scorer = stage_scorer(state, best.stage, base=p_lag)
+    fit = scorer.score(state.model.effects[best.key], best.n_eff)
+    short = acceptance.margin_shortfall(fit, state.settings.min_relative_gain,
+                                        aic_drop(state, best.k_effect))
+    row.update(stands=short is None, through_cascade={
+        "relative_gain": fit.relative_gain, "aic_delta": fit.aic_delta,
+        "identification_cost": cost, "before": state.cost})
+    row["reason"] += (f", and with the lag carried through the cascade "
+                      f"{100 * fit.relative_gain:.1f} % (ΔAIC {fit.aic_delta:.0f})")
 
 
 def _beyond_text(state: DiscoveryState, key: str) -> str:

@@ -126,7 +126,7 @@ def lags_through_cascade(state: DiscoveryState, p: np.ndarray,
     for _, score in sorted(scores, key=lambda c: -c[1].relative_gain):
         if score.fell_back or score.relative_gain <= 0.0:
             continue
-        physics, cost = _carried(state, score)
+        physics, cost = extension.rival_through_cascade(state, score)
         aic = state.base_n_eff * math.log(cost / cost_before) + 2 * score.k_effect
         if cost < cost_before and aic <= -aic_drop(state, score.k_effect):
             lag = next(n for n in score.free if n in rivals.parameters(state.model))
@@ -162,19 +162,8 @@ def with_the_cascade(state: DiscoveryState, score: CandidateScore) -> np.ndarray
     the compact plan's 2.8 ms lag, refitted in the blocked column and added to the
     free-tie-rods stage as that stage was fitted without it, took the control FIT from
     99.0 to 98.5 %). Kept only where it lowers the identification cost."""
-    p, cost = _carried(state, score)
+    p, cost = extension.rival_through_cascade(state, score)
     return p if cost < state.cost else score.params
-
-
-def _carried(state: DiscoveryState, score: CandidateScore) -> tuple[np.ndarray, float]:
-    """The cascade refitted from the rival's stage refit, the rival held at its size outside
-    its stage, and its identification cost (or the start's, where that is lower)."""
-    trial_free = dict(state.extra_free)
-    trial_free[score.stage] = tuple(trial_free.get(score.stage, ())) + tuple(
-        n for n in score.free if n in rivals.parameters(state.model))
-    return extension.extended_cascade(
-        state.campaign, dataclasses.replace(state.settings.identify, multistart=1), state.ids,
-        state.scales, [score.params], trial_free)
 
 
 def _refit(state: DiscoveryState, gone: dict) -> tuple[CandidateScore, dict] | None:
