@@ -930,8 +930,9 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     lag_gain = {"blocked_column": 0.272, "free_tie_rods": 0.10}
     refitted = []
 
-    def rivals(scorer, model, n_eff, stated=None, winner_share=0.0):
+    def rivals(scorer, model, n_eff, stated=None, winner_share=0.0, screened=None):
         refitted.append(scorer)
+        screened["friction_drift:campaign"] = 0.01  # one step put it under the winner's half
         return [cand("sensor_lag:steering_torque_nm", scorer, lag_gain[scorer])]
 
     # nested with the lag, the winner removes this share of what the lag leaves
@@ -964,6 +965,10 @@ def test_a_winner_a_sensor_lag_matches_is_not_named(monkeypatch):
     assert [g["key"] for g in gone] == [column.key]
     assert "3.6 ms lag of the steering_torque_nm sensor alone 27.2 %" in gone[0]["reason"]
     assert len(rec["rivals"]) == 2
+    assert rec["rivals_screened"] == [
+        {"key": "friction_drift:campaign", "stage": stage, "predicted_gain": 0.01,
+         "winner": winner.key} for stage, winner in (("blocked_column", column),
+                                                     ("free_tie_rods", dahl))]
     # a lag that matches every stage's winner leaves nothing to name
     lag_gain["free_tie_rods"] = 0.225
     left, lags = catalogue_mod._past_rivals(state, scorers, [column, dahl, asym], {

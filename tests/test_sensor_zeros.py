@@ -107,3 +107,10 @@ def test_the_structure_figure_draws_each_rival_beside_the_candidates(monkeypatch
     assert bars[-1].get_width() == pytest.approx(82.5)
     assert bars[-1].get_facecolor() == to_rgba("tab:gray")
     assert bars[-2].get_facecolor() == to_rgba("tab:green")
+    # a rival one step put under half the winner's share is not drawn, and the axis says so
+    rounds[0]["rivals_screened"] = [{"key": "sensor_lag:steering_torque_nm",
+                                     "stage": "free_tie_rods", "predicted_gain": 0.253}]
+    ax = structure_axes(monkeypatch, rounds, tmp_path / "s.png")
+    assert len(ax.patches) == 3
+    assert ("rivals not refitted, one step under half the winner's share: sensor_lag 25.3 %"
+            in ax.get_xlabel()), ax.get_xlabel()

@@ -70,8 +70,8 @@ STATED = "stated_values"
 # where the lag's refit starts (× 0.3, 1, 3: ``structure.start_grid``): a sensor filter's
 # few milliseconds
 TYPICAL_LAG_S = 0.003
-# A rival is refitted (4-20 s in a loaded stage) only where one Gauss-Newton step of it
-# and the stage's parameters (``StageScorer.linearised_share``, 0.2-1.4 s) reaches this
+# A rival is refitted (4-26 s in a loaded stage) only where one Gauss-Newton step of it
+# and the stage's parameters (``StageScorer.linearised_share``, 0.02-2.3 s) reaches this
 # share of the winner's: one that removes half the winner's share neither matches it nor
 # wins a resample of the ranking bootstrap. The stated values' step starts where the
 # campaign states them: against the refit 24.1/24.4 %, 2.4/2.8, 16.8/17.7, 13.4/12.9,
@@ -192,16 +192,20 @@ def parameters(model: ModelDefinition) -> set[str]:
 
 
 def rivals(scorer: StageScorer, model: ModelDefinition, n_eff: float,
-           stated: Stated | None = None, winner_share: float = 0.0) -> list[CandidateScore]:
+           stated: Stated | None = None, winner_share: float = 0.0,
+           screened: dict[str, float] | None = None) -> list[CandidateScore]:
     """Every rival of the stage (``specs``: the ``stated`` values only where the stage does
     not fit them already, as a prior frees its value) whose linearised refit reaches
-    ``SCREEN_SHARE`` of the winner's share, refitted with the stage's parameters."""
+    ``SCREEN_SHARE`` of the winner's share, refitted with the stage's parameters;
+    ``screened`` gets the step's share of each one not refitted."""
     mine = stated.without(scorer.stage_free) if stated is not None else None
     out = []
     for spec in specs(scorer.tests, model, mine, held_offsets(scorer)):
-        if scorer.linearised_share(spec, at_default_size=spec.effect == LAG) \
-                < SCREEN_SHARE * winner_share:
-            continue  # it cannot come near the winner: the refit would cost seconds
+        step = scorer.linearised_share(spec, at_default_size=spec.effect == LAG)
+        if step < SCREEN_SHARE * winner_share:
+            if screened is not None:  # it cannot come near the winner: no refit
+                screened[spec.key] = step
+            continue
         out.append(scorer.score(spec, n_eff))
     return out
 

@@ -103,7 +103,7 @@ def structure_bars(result, path: Path) -> None:
         ax.set_xlabel({"stick_slip": "fast-envelope misfit removed in its stage [%]",
                        "equation_error": "inverse-model (equation-error) cost removed [%]"
                        }.get(method, "residual cost removed in its stage [%]")
-                      + _screened_out_note(r), fontsize=8)
+                      + _screened_out_note(r) + _rivals_screened_note(r), fontsize=8)
         acc = r["accepted"] or "none"
         kind = {"stick_slip": " (stick-slip test)",
                 "equation_error": " (equation-error test)"}.get(method, "")
@@ -481,3 +481,13 @@ def _screened_out_note(rnd: dict) -> str:
     spared = [k for k in screen["predicted_gain"] if k not in refitted]
     return (f"\n{len(spared)} more not refitted: the screen predicted each below "
             f"{100 * screen['needed']:.0f} % (discovery.md)" if spared else "")
+
+
+def _rivals_screened_note(rnd: dict) -> str:
+    """A further axis line for the rivals outside the catalogue that one step put under
+    half the winner's share (``rivals.SCREEN_SHARE``): not drawn, as not refitted."""
+    spared = rnd.get("rivals_screened", [])
+    said = ", ".join(f"{g['key'].split(':')[0]} {100 * g['predicted_gain']:.1f} %"
+                     for g in spared)
+    return (f"\nrivals not refitted, one step under half the winner's share: {said}"
+            if spared else "")
