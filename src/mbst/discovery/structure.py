@@ -455,28 +455,7 @@ class StageScorer:
         """
         t0 = time.perf_counter()
         p_base, cost_base = self.base_refit()
-        if start is None:
-            grid = start_grid(spec, self.model)
-            ps, grid_cost = self._grid(p_base, grid, spec)
-            order = np.argsort(grid_cost)
-            starts = [ps[i] for i in order[: self.starts]]
-            if float(grid_cost[order[0]]) > cost_base:
-                starts += self._weaker_start(spec, p_base, grid)
-            grid_best = grid[int(order[0])]
-            grid_gain = 1.0 - float(grid_cost[order[0]]) / cost_base if cost_base > 0 else 0.0
-            if self.reset:
-                starts += self._handbook_starts(p_base, spec, grid)
-        else:
-            starts = [start.params]
-            grid_best, grid_gain = start.grid_best, start.grid_gain
-            absorbed = [n for n in spec.absorbed_by if n in self.stage_free]
-            if absorbed and self.evidence_gain is not None and \
-                    start.relative_gain >= self.evidence_gain:
-                # A fit without the effect lifted these to stand in for it, within the
-                # 3x that counts as compensation: tire Stribeck refined from its
-                # screening to 39 % of the stage cost beside a Coulomb level of 3166 N
-                # (true 2600 N), from this start to 85 %.
-                starts.append(self.handbook_start(p_base, spec, absorbed))
+        starts, grid_best, grid_gain = self._starts(spec, p_base, cost_base, start)
         t_grid = time.perf_counter() - t0
         nfev, converge = max_nfev or self.max_nfev, start is not None
         fr = self._refit(spec, p_base, starts, nfev, converge)
@@ -528,6 +507,35 @@ class StageScorer:
             work_spent=fr.work_spent,
             cost_refit=refit_cost, base_params=base_params,
         )
+
+    def _starts(self, spec: EffectSpec, p_base: np.ndarray, cost_base: float,
+                start: CandidateScore | None
+                ) -> tuple[list[np.ndarray], dict[str, float], float]:
+        """Where ``score`` refits from: the grid's best, the weaker and handbook starts (or
+        ``start`` continued); the grid's best point and the share of the stage it removed."""
+        if start is None:
+            grid = start_grid(spec, self.model)
+            ps, grid_cost = self._grid(p_base, grid, spec)
+            order = np.argsort(grid_cost)
+            starts = [ps[i] for i in order[: self.starts]]
+            if float(grid_cost[order[0]]) > cost_base:
+                starts += self._weaker_start(spec, p_base, grid)
+            grid_best = grid[int(order[0])]
+            grid_gain = 1.0 - float(grid_cost[order[0]]) / cost_base if cost_base > 0 else 0.0
+            if self.reset:
+                starts += self._handbook_starts(p_base, spec, grid)
+        else:
+            starts = [start.params]
+            grid_best, grid_gain = start.grid_best, start.grid_gain
+            absorbed = [n for n in spec.absorbed_by if n in self.stage_free]
+            if absorbed and self.evidence_gain is not None and \
+                    start.relative_gain >= self.evidence_gain:
+                # A fit without the effect lifted these to stand in for it, within the
+                # 3x that counts as compensation: tire Stribeck refined from its
+                # screening to 39 % of the stage cost beside a Coulomb level of 3166 N
+                # (true 2600 N), from this start to 85 %.
+                starts.append(self.handbook_start(p_base, spec, absorbed))
+        return starts, grid_best, grid_gain
 
     def reseeded(self, spec: EffectSpec, cand: CandidateScore, rival: CandidateScore
                  ) -> CandidateScore:
