@@ -590,7 +590,7 @@ class StageScorer:
                                                 self.model.spec(n).lower,
                                                 self.model.spec(n).upper))
                                for n in names}}
-        return [self._grid(p_base, [point], spec)[0][0]]
+        return [self._rows(p_base, [point], spec)[0]]  # the refit scores it
 
     def _handbook_starts(self, p_base: np.ndarray, spec: EffectSpec,
                          grid: list[dict[str, float]]) -> list[np.ndarray]:
@@ -633,13 +633,19 @@ class StageScorer:
     def _grid(self, p: np.ndarray, grid: list[dict[str, float]],
               spec: EffectSpec | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``p`` with the effect at each grid point (rows), and each row's stage cost."""
+        ps = self._rows(p, grid, spec)
+        return ps, self.costs(ps).sum(axis=1)
+
+    def _rows(self, p: np.ndarray, grid: list[dict[str, float]],
+              spec: EffectSpec | None = None) -> np.ndarray:
+        """``p`` with the effect at each grid point, a row each."""
         ps = np.repeat(np.asarray(p, float)[None], len(grid), axis=0)
         for i, g in enumerate(grid):
             for n, v in g.items():
                 ps[i, self.model.param_index[n]] = v
         if spec is not None:
             ps = self.keep_damping_force(ps, np.asarray(p, float), spec)
-        return ps, self.costs(ps).sum(axis=1)
+        return ps
 
     def _refit(self, spec: EffectSpec, p_base: np.ndarray, starts: list[np.ndarray],
                max_nfev: int, converge: bool) -> FitResult:
