@@ -152,6 +152,20 @@ def stage_channels(pt: PreparedTest) -> list[str]:
     return [ch for ch in pt.measured]
 
 
+@dataclass
+class _Start:
+    """Where the stages start: the known values, the stated priors and pre-identification."""
+
+    p: np.ndarray
+    # stated priors (name → value, σ of ln θ), fitted in the stage that isolates them
+    priors: dict
+    # stated values held as stated (not priors)
+    held: set[str]
+    preid: dict
+    extra_free: dict[str, tuple[str, ...]]
+    settings: IdentifySettings
+
+
 def run_cascade(
     campaign: Campaign,
     settings: IdentifySettings,
@@ -173,14 +187,73 @@ def run_cascade(
     prepared, warnings = prepare_campaign(campaign, settings.tau_s)
     id_tests = [prepared[s.id] for s in id_specs]
     scales = channel_scales(id_tests)
-
     model = campaign.model()
+    start = _cascade_start(campaign, model, id_tests, settings, base, extra_free, only,
+                           warnings)
+    p, settings, preid = start.p, start.settings, start.preid
+    stated = frozenset(start.priors)
+
+    # what pre-identification measured better than an output-error fit would (the model says)
+    fixed: set[str] = {n for n in preid.get("held", {}) if only is None or n in only}
+    stages: list[StageResult] = []
+    carried: list[str] = []
+    rng = np.random.default_rng(settings.seed)
+    for scenario, isolates in model.cascade:
+        tests = model.stage_tests(scenario, id_tests)
+        passed_on = []
+        if tests and scenario in model.carry_through:
+            passed_on, carried = list(carried), []
+        wanted = list(carried) + [n for n in isolates if n not in fixed]
+        refit = list(model.refines.get(scenario, ())) if tests else []
+        fixed.difference_update(refit)
+        wanted += refit
+        wanted += list(start.extra_free.get(scenario, ()))
+        if not tests:
+            # a later scenario may inform these too (the model says which)
+            carried = [n for n in wanted if model.carries_over(n)]
+            continue
+        free, uninformed = _stage_free(model, tests, wanted, fixed | start.held, only)
+        carried = uninformed + passed_on
+        if not free:
+            for pt in tests:
+                warnings.append(f"test '{pt.id}' ({scenario}) informs no free parameter")
+            continue
+        p, stage, notes = _fit_stage(model, scenario, tests, free, p, scales, preid["upper"],
+                                     settings, rng, stated=stated)
+        fixed.update(free)
+        stages.append(stage)
+        warnings += notes
+        _progress(settings, stage)
+    if settings.joint_refinement and stages:
+        # every parameter the stages found, refitted on every identification test together:
+        # a stage sees only its own cut-out, the joint information sees them all
+        free = list(dict.fromkeys(n for st in stages for n in st.free))
+        p, stage, notes = _fit_stage(model, JOINT_STAGE, id_tests, free, p, scales,
+                                     preid["upper"], settings, rng, stated=stated)
+        stages.append(stage)
+        warnings += notes
+        _progress(settings, stage)
+    for n in carried:
+        if only is None or n in only:
+            warnings.append(f"'{n}' could not be identified: no test of a scenario that "
+                            "informs it")
+    checks = check_priors(campaign, model, p, stages)
+    warnings += known_notes(checks)
+    return Cascade(p, stages, preid, warnings, prepared, checks)
+
+
+def _cascade_start(campaign: Campaign, model: ModelDefinition, id_tests: list[PreparedTest],
+                   settings: IdentifySettings, base: np.ndarray | None,
+                   extra_free: dict[str, tuple[str, ...]] | None, only: set[str] | None,
+                   warnings: list[str]) -> _Start:
+    """The vector the stages start from: known values over ``base``, then what
+    pre-identification measured (warnings appended to ``warnings``)."""
     for k in campaign.known:
         if k not in model.param_index:
             warnings.append(f"known '{k}' is not a parameter of the {model.name} model; "
                             "it is not used")
     p = model.vector_from({k: v for k, v in campaign.known.items() if k in model.param_index},
-                    base=base if base is not None else None)
+                          base=base if base is not None else None)
     # a stated prior is fitted in the stage that isolates its component, held by its σ
     priors = {k: v for k, v in campaign_priors(campaign, model).items()
               if only is None or k in only}
@@ -198,74 +271,40 @@ def run_cascade(
         spec = model.spec(k)
         p[model.param_index[k]] = float(np.clip(v, spec.lower, spec.upper))
     warnings += preid["notes"]
+    return _Start(p, priors, held, preid, extra_free, settings)
 
-    # what pre-identification measured better than an output-error fit would (the model says)
-    fixed: set[str] = {n for n in preid.get("held", {}) if only is None or n in only}
-    stages: list[StageResult] = []
-    carried: list[str] = []
-    rng = np.random.default_rng(settings.seed)
-    for scenario, isolates in model.cascade:
-        tests = model.stage_tests(scenario, id_tests)
-        passed_on = []
-        if tests and scenario in model.carry_through:
-            passed_on, carried = list(carried), []
-        wanted = list(carried) + [n for n in isolates if n not in fixed]
-        refit = list(model.refines.get(scenario, ())) if tests else []
-        fixed.difference_update(refit)
-        wanted += refit
-        wanted += list((extra_free or {}).get(scenario, ()))
-        if not tests:
-            # a later scenario may inform these too (the model says which)
-            carried = [n for n in wanted if model.carries_over(n)]
+
+def _stage_free(model: ModelDefinition, tests: list[PreparedTest], wanted: list[str],
+                not_free: set[str], only: set[str] | None) -> tuple[list[str], list[str]]:
+    """A stage's free parameters, and those of ``wanted`` its tests do not inform.
+
+    ``not_free``: found by earlier stages, measured by pre-identification or stated.
+    """
+    channels_here = {ch for pt in tests for ch in pt.measured}
+    free = []
+    uninformed = []
+    for n in dict.fromkeys(wanted):
+        if n in not_free or (only is not None and n not in only
+                             and not n.startswith("offset.")):
             continue
-        channels_here = {ch for pt in tests for ch in pt.measured}
-        free = []
-        uninformed = []
-        for n in dict.fromkeys(wanted):
-            if n in fixed or n in held or (only is not None and n not in only
-                                           and not n.startswith("offset.")):
-                continue
-            if n.startswith("offset.") and model.offset_channels[n] not in channels_here:
-                continue
-            if not model.informed_by(n, tests):
-                uninformed.append(n)
-                continue
+        if n.startswith("offset.") and model.offset_channels[n] not in channels_here:
+            continue
+        if not model.informed_by(n, tests):
+            uninformed.append(n)
+            continue
+        free.append(n)
+    # an offset seen for the first time here, estimated by a later stage's channels
+    for n, ch in model.offset_channels.items():
+        if ch in channels_here and n not in not_free and n not in free:
             free.append(n)
-        # an offset seen for the first time here, estimated by a later stage's channels
-        for n, ch in model.offset_channels.items():
-            if ch in channels_here and n not in fixed and n not in free and n not in held:
-                free.append(n)
-        carried = uninformed + passed_on
-        if not free:
-            for pt in tests:
-                warnings.append(f"test '{pt.id}' ({scenario}) informs no free parameter")
-            continue
-        p, stage, notes = _fit_stage(model, scenario, tests, free, p, scales, preid["upper"],
-                                     settings, rng, stated=frozenset(priors))
-        fixed.update(free)
-        stages.append(stage)
-        warnings += notes
-        if settings.progress:
-            print(f"  stage {scenario:<16} {len(free)} params, {len(tests)} tests, "
-                  f"cost {stage.cost:.4g}, {stage.wall_s:.1f} s", flush=True)
-    if settings.joint_refinement and stages:
-        # every parameter the stages found, refitted on every identification test together:
-        # a stage sees only its own cut-out, the joint information sees them all
-        free = list(dict.fromkeys(n for st in stages for n in st.free))
-        p, stage, notes = _fit_stage(model, JOINT_STAGE, id_tests, free, p, scales,
-                                     preid["upper"], settings, rng, stated=frozenset(priors))
-        stages.append(stage)
-        warnings += notes
-        if settings.progress:
-            print(f"  stage {JOINT_STAGE:<16} {len(free)} params, {len(id_tests)} tests, "
-                  f"cost {stage.cost:.4g}, {stage.wall_s:.1f} s", flush=True)
-    for n in carried:
-        if only is None or n in only:
-            warnings.append(f"'{n}' could not be identified: no test of a scenario that "
-                            "informs it")
-    checks = check_priors(campaign, model, p, stages)
-    warnings += known_notes(checks)
-    return Cascade(p, stages, preid, warnings, prepared, checks)
+    return free, uninformed
+
+
+def _progress(settings: IdentifySettings, stage: StageResult) -> None:
+    if settings.progress:
+        print(f"  stage {stage.scenario:<16} {len(stage.free)} params, "
+              f"{len(stage.tests)} tests, cost {stage.cost:.4g}, {stage.wall_s:.1f} s",
+              flush=True)
 
 
 def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest], free: list[str],

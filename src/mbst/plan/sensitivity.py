@@ -198,48 +198,14 @@ def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
     cells = candidate_cells(cfg)
     sensors = [s.name for s in cfg.sensors]
     noise = np.array([s.noise for s in cfg.sensors])
-    idx = np.array([PARAM_INDEX[n] for n in cfg.unknown_names])
-    base = cfg.nominal_vector()
     points = sweep_points(cfg)
-    kk, pp, ss, cc = len(points), len(idx), len(sensors), len(cells)
+    vecs = _run_vectors(cfg, points)
     effects = effect_list(cfg)
-    ee = len(effects)
-    d = cfg.fd_step
-    lo = np.array([u.low for u in cfg.unknowns])
-    hi = np.array([u.high for u in cfg.unknowns])
-
-    # the parameter vectors of one cell (identical for every cell)
-    vecs = []
-    for k in range(kk):
-        centre = base.copy()
-        centre[idx] = points[k]
-        vecs.append(centre)
-        for j in range(pp):
-            for sgn in (1.0, -1.0):
-                q = centre.copy()
-                q[idx[j]] *= np.exp(sgn * d)
-                vecs.append(q)
-    for j in range(pp):
-        for bound in (lo[j], hi[j]):
-            q = vecs[0].copy()
-            q[idx[j]] = bound
-            vecs.append(q)
-    vecs = np.stack(vecs)
-    n_sweep = kk * (2 * pp + 1)
     eff_vecs = [_effect_vector(vecs[0], e) for e in effects]
-
-    gram = np.zeros((kk, cc, ss, pp, pp))
-    colsum = np.zeros((kk, cc, ss, pp))
-    rms = np.zeros((kk, cc, ss, pp))
-    swing = np.zeros((cc, ss, pp))
-    n_samples = np.zeros(cc, dtype=int)
-    effect_gram = np.zeros((cc, ss, pp + ee, pp + ee))
-    nominal: dict[str, dict[str, np.ndarray]] = {}
-    sigma = np.zeros((cc, ss))
-    draws = cfg.input_draws
-    input_error = np.zeros((kk, cc, ss, draws, pp))
+    acc = _Reduction.empty(len(points), len(cells), len(sensors), len(cfg.unknowns),
+                           len(effects), cfg.input_draws)
     angle_noise = float(noise[sensors.index(INPUT_SENSOR)])
-    ones = np.ones(ss)
+    ones = np.ones(len(sensors))
     n_sims = 0
     pool = ThreadPoolExecutor(max_workers=max(1, numba.get_num_threads()))
     for c, cell in enumerate(tqdm(cells, desc="plan: sensitivity", unit="cell",
@@ -247,64 +213,142 @@ def analyse(cfg: PlanConfig, progress: bool = False) -> Sensitivity:
         t, ang = profile(cell.input, cfg.analysis_rate_hz)
         dt = float(t[1] - t[0])
         om = np.gradient(ang, dt)
-        n_samples[c] = len(t)
+        acc.n_samples[c] = len(t)
         # one step size for every base-model run of the cell: a finite difference
         # between runs with different sub-steps would measure the integrator
         n_sub = max(eps.substeps(q, cell.scenario, dt) for q in vecs)
         y = _signals(cell, _run(cell, ang, om, dt, vecs, n_sub), vecs, ang, sensors, ones)
         n_sims += len(vecs)
-        nominal[cell.label] = {"time_s": t, "steering_angle_rad": ang,
-                               **{s: y[0, i] for i, s in enumerate(sensors)}}
+        acc.nominal[cell.label] = {"time_s": t, "steering_angle_rad": ang,
+                                   **{s: y[0, i] for i, s in enumerate(sensors)}}
         # the model is never exactly right: a share of each channel's own swing in this
         # test counts as noise too, so no plan leans on a signal far below the model error
         swing_rms = y[0].std(axis=1)
         sig_eff = np.sqrt(noise**2 + (cfg.model_error_fraction * swing_rms) ** 2)
         sig_eff[sensors.index(INPUT_SENSOR)] = noise[sensors.index(INPUT_SENSOR)]
-        sigma[c] = sig_eff
+        acc.sigma[c] = sig_eff
         y /= sig_eff[None, :, None]
         err = (_input_error(cfg, cell, vecs[0], n_sub, len(t), angle_noise, sensors, sig_eff,
                             np.random.default_rng([cfg.seed, 11, c])) - y[0][None]
-               if draws else None)
-        n_sims += draws
+               if cfg.input_draws else None)
+        n_sims += cfg.input_draws
+        j0 = acc.add_sweep(c, y, err, cfg.fd_step)
+        if effects:
+            runs = _effect_runs(cell, ang, om, dt, vecs[0], eff_vecs, pool)
+            n_sims += len(runs.raws)
+            acc.effect_gram[c] = _effect_gram(cell, runs, vecs[0], eff_vecs, j0, ang,
+                                              sensors, sig_eff)
+    pool.shutdown()
+    return Sensitivity(
+        unknowns=list(cfg.unknown_names), sensors=sensors, cells=cells, points=points,
+        gram=acc.gram, colsum=acc.colsum, n_samples=acc.n_samples, rms=acc.rms,
+        swing=acc.swing, effects=[e.key for e in effects], effect_gram=acc.effect_gram,
+        sigma=acc.sigma, nominal=acc.nominal, n_simulations=n_sims,
+        wall_s=time.perf_counter() - t0,
+        input_error=acc.input_error if cfg.input_draws else None,
+    )
+
+
+def _run_vectors(cfg: PlanConfig, points: np.ndarray) -> np.ndarray:
+    """The parameter vectors of one cell (identical for every cell): per sweep point the
+    centre and its ± steps in ln θ, then each unknown at the low and high end of its range."""
+    idx = np.array([PARAM_INDEX[n] for n in cfg.unknown_names])
+    base = cfg.nominal_vector()
+    d = cfg.fd_step
+    vecs = []
+    for point in points:
+        centre = base.copy()
+        centre[idx] = point
+        vecs.append(centre)
+        for j in range(len(idx)):
+            for sgn in (1.0, -1.0):
+                q = centre.copy()
+                q[idx[j]] *= np.exp(sgn * d)
+                vecs.append(q)
+    for j, u in enumerate(cfg.unknowns):
+        for bound in (u.low, u.high):
+            q = vecs[0].copy()
+            q[idx[j]] = bound
+            vecs.append(q)
+    return np.stack(vecs)
+
+
+@dataclass
+class _Reduction:
+    """The grid's signals reduced cell by cell (the fields of ``Sensitivity``)."""
+
+    gram: np.ndarray
+    colsum: np.ndarray
+    rms: np.ndarray
+    swing: np.ndarray
+    n_samples: np.ndarray
+    effect_gram: np.ndarray
+    sigma: np.ndarray
+    input_error: np.ndarray
+    nominal: dict[str, dict[str, np.ndarray]]
+
+    @classmethod
+    def empty(cls, kk: int, cc: int, ss: int, pp: int, ee: int, draws: int) -> _Reduction:
+        return cls(gram=np.zeros((kk, cc, ss, pp, pp)), colsum=np.zeros((kk, cc, ss, pp)),
+                   rms=np.zeros((kk, cc, ss, pp)), swing=np.zeros((cc, ss, pp)),
+                   n_samples=np.zeros(cc, dtype=int),
+                   effect_gram=np.zeros((cc, ss, pp + ee, pp + ee)), sigma=np.zeros((cc, ss)),
+                   input_error=np.zeros((kk, cc, ss, draws, pp)), nominal={})
+
+    def add_sweep(self, c: int, y: np.ndarray, err: np.ndarray | None, d: float
+                  ) -> np.ndarray:
+        """Cell ``c``'s sweep runs ``y`` (noise units, in ``_run_vectors``' order) reduced;
+        returns the centre's Jacobian (S, N, P)."""
+        kk, pp = self.gram.shape[0], self.gram.shape[-1]
         j0 = None
         for k in range(kk):
             b = k * (2 * pp + 1)
             plus, minus = y[b + 1: b + 1 + 2 * pp: 2], y[b + 2: b + 2 + 2 * pp: 2]
             jac = (plus - minus) / (2.0 * d)  # (P, S, N)
             jac = np.transpose(jac, (1, 2, 0))  # (S, N, P)
-            gram[k, c] = np.einsum("snp,snq->spq", jac, jac)
-            colsum[k, c] = jac.sum(axis=1)
-            rms[k, c] = np.sqrt(np.mean(jac**2, axis=1))
+            self.gram[k, c] = np.einsum("snp,snq->spq", jac, jac)
+            self.colsum[k, c] = jac.sum(axis=1)
+            self.rms[k, c] = np.sqrt(np.mean(jac**2, axis=1))
             if err is not None:
-                input_error[k, c] = np.einsum("snp,msn->smp", jac, err)
+                self.input_error[k, c] = np.einsum("snp,msn->smp", jac, err)
             if k == 0:
                 j0 = jac
+        n_sweep = kk * (2 * pp + 1)
         sw = y[n_sweep + 1:: 2] - y[n_sweep:: 2]  # (P, S, N): high − low
-        swing[c] = np.sqrt(np.mean(sw**2, axis=2)).T
-        if ee:
-            # effect signatures against the centre run at the effect's own step size;
-            # single runs of different step sizes go to a thread pool (the kernel
-            # releases the GIL), so both cores stay busy
-            subs = [eps.substeps(q, cell.scenario, dt) for q in eff_vecs]
-            runs = [(vecs[0], ns) for ns in sorted(set(subs))] + list(zip(eff_vecs, subs))
-            raws = list(pool.map(lambda job: _run_one(cell, ang, om, dt, *job), runs))
-            n_sims += len(runs)
-            centre = {ns: _signals(cell, raws[i][None], vecs[:1], ang, sensors, sig_eff)[0]
-                      for i, ns in enumerate(sorted(set(subs)))}
-            off = len(centre)
-            sig = np.zeros((ss, len(t), ee))
-            for e in range(ee):
-                ye = _signals(cell, raws[off + e][None], eff_vecs[e][None], ang, sensors,
-                              sig_eff)
-                sig[:, :, e] = ye[0] - centre[subs[e]]
-            v = np.concatenate([j0, sig], axis=2)  # (S, N, P+E)
-            v = v - v.mean(axis=1, keepdims=True)  # per-test sensor offset removed
-            effect_gram[c] = np.einsum("sna,snb->sab", v, v)
-    pool.shutdown()
-    return Sensitivity(
-        unknowns=list(cfg.unknown_names), sensors=sensors, cells=cells, points=points,
-        gram=gram, colsum=colsum, n_samples=n_samples, rms=rms, swing=swing,
-        effects=[e.key for e in effects], effect_gram=effect_gram, sigma=sigma, nominal=nominal,
-        n_simulations=n_sims, wall_s=time.perf_counter() - t0,
-        input_error=input_error if draws else None,
-    )
+        self.swing[c] = np.sqrt(np.mean(sw**2, axis=2)).T
+        return j0
+
+
+@dataclass
+class _EffectRuns:
+    """A cell's runs for the effect signatures: the centre at each effect's step size."""
+
+    subs: list[int]  # sub-steps of each effect's run
+    raws: list[np.ndarray]  # the centre at each distinct step size, then each effect
+
+
+def _effect_runs(cell: Cell, ang: np.ndarray, om: np.ndarray, dt: float, centre: np.ndarray,
+                 eff_vecs: list[np.ndarray], pool: ThreadPoolExecutor) -> _EffectRuns:
+    # single runs of different step sizes go to a thread pool (the kernel releases the
+    # GIL), so both cores stay busy
+    subs = [eps.substeps(q, cell.scenario, dt) for q in eff_vecs]
+    runs = [(centre, ns) for ns in sorted(set(subs))] + list(zip(eff_vecs, subs))
+    return _EffectRuns(subs, list(pool.map(lambda job: _run_one(cell, ang, om, dt, *job),
+                                           runs)))
+
+
+def _effect_gram(cell: Cell, runs: _EffectRuns, centre: np.ndarray,
+                 eff_vecs: list[np.ndarray], j0: np.ndarray, ang: np.ndarray,
+                 sensors: list[str], sig_eff: np.ndarray) -> np.ndarray:
+    """(S, P+E, P+E) per-test centred Gram of [J(centre), effect signatures]: each effect
+    against the centre run at the effect's own step size."""
+    steps = sorted(set(runs.subs))
+    at_step = {ns: _signals(cell, runs.raws[i][None], centre[None], ang, sensors, sig_eff)[0]
+               for i, ns in enumerate(steps)}
+    sig = np.zeros((len(sensors), len(ang), len(eff_vecs)))
+    for e, q in enumerate(eff_vecs):
+        ye = _signals(cell, runs.raws[len(steps) + e][None], q[None], ang, sensors, sig_eff)
+        sig[:, :, e] = ye[0] - at_step[runs.subs[e]]
+    v = np.concatenate([j0, sig], axis=2)  # (S, N, P+E)
+    v = v - v.mean(axis=1, keepdims=True)  # per-test sensor offset removed
+    return np.einsum("sna,snb->sab", v, v)
