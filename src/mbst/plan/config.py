@@ -346,23 +346,59 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
     sensors = _sensors(r, doc.get("sensors"))
     scenarios = _scenarios(r, doc.get("scenarios"))
     inputs = _inputs(r, doc.get("inputs"))
-    sweep = r.mapping(doc.get("sweep", {}), "sweep", ("points", "fd_step", "input_draws"))
-    sel = r.mapping(doc.get("selection", {}), "selection",
-                    ("budget", "target_relative_std", "max_tests_per_scenario", "controls"))
-    naive = r.mapping(doc.get("naive", {}), "naive", ("scenario", "input", "sensors"))
-    eff = r.mapping(doc.get("effects", {}), "effects",
-                    ("enabled", "default_sensors", "min_evidence", "min_unexplained", "only"))
-    fig = r.mapping(doc.get("figures", {}), "figures", ("frequency_comparison",))
-    proof = r.mapping(doc.get("proof", {}), "proof", ("enabled", "seed", "effects", "multistart",
-                                                          "joint_refinement", "range_prior"))
+    sections = {
+        "sweep": r.mapping(doc.get("sweep", {}), "sweep", ("points", "fd_step", "input_draws")),
+        "selection": r.mapping(doc.get("selection", {}), "selection",
+                               ("budget", "target_relative_std", "max_tests_per_scenario",
+                                "controls")),
+        "naive": r.mapping(doc.get("naive", {}), "naive", ("scenario", "input", "sensors")),
+        "effects": r.mapping(doc.get("effects", {}), "effects",
+                             ("enabled", "default_sensors", "min_evidence", "min_unexplained",
+                              "only")),
+        "figures": r.mapping(doc.get("figures", {}), "figures", ("frequency_comparison",)),
+        "proof": r.mapping(doc.get("proof", {}), "proof",
+                           ("enabled", "seed", "effects", "multistart", "joint_refinement",
+                            "range_prior")),
+    }
+    naive, eff = sections["naive"], sections["effects"]
     scen_ids = [s.id for s in scenarios]
     input_ids = [i.id for i in inputs]
-    sensor_names = [s.name for s in sensors]
     sines = sorted((i for i in inputs if i.kind == "sine"), key=lambda i: i.options["frequency_hz"])
-
     naive_scen = r.text(naive.get("scenario", scen_ids[-1]), "naive.scenario", scen_ids)
     default_slow = sines[0].id if sines else input_ids[0]
     naive_input = r.text(naive.get("input", default_slow), "naive.input", input_ids)
+    eff_sensors, only = _effect_choice(r, eff, [s.name for s in sensors])
+    fig_scen, fig_in = _frequency_figure(r, sections["figures"], scen_ids, input_ids, sines)
+    proof_effects = _proof_effects(r, sections["proof"])
+    bools = _switches(r, sections)
+    n_selectable = sum(not s.mandatory for s in sensors)
+    return PlanConfig(
+        path=str(path),
+        name=r.text(doc.get("name", Path(path).stem), "name"),
+        known={k: float(v) for k, v in known.items()},
+        unknowns=unknowns,
+        sensors=sensors,
+        scenarios=scenarios,
+        inputs=inputs,
+        controls=bools["selection.controls"],
+        naive_scenario=naive_scen,
+        naive_input=naive_input,
+        naive_sensors=r.integer(naive.get("sensors", min(3, n_selectable)), "naive.sensors", 0),
+        effects_enabled=bools["effects.enabled"],
+        effects_default_sensors=list(eff_sensors),
+        effects_list=list(only) if only is not None else None,
+        fig_scenario=fig_scen,
+        fig_inputs=(fig_in[0], fig_in[1]),
+        proof_enabled=bools["proof.enabled"],
+        proof_effects=list(proof_effects),
+        proof_joint_refinement=bools["proof.joint_refinement"],
+        proof_range_prior=bools["proof.range_prior"],
+        **_numbers(r, doc, sections),
+    )
+
+
+def _effect_choice(r: _Reader, eff: dict, sensor_names: list[str]) -> tuple[list, list | None]:
+    """``effects.default_sensors`` and ``effects.only``, each checked against what exists."""
     default_eff = [s for s in ("steering_angle_rad", "steering_torque_nm", "rack_position_m",
                                "tie_rod_force_left_n") if s in sensor_names]
     eff_sensors = r.seq(eff.get("default_sensors", default_eff), "effects.default_sensors")
@@ -373,6 +409,12 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
         from mbst.systems.eps.params import EFFECTS
         for k, e in enumerate(r.seq(only, "effects.only")):
             r.text(e, f"effects.only[{k}]", sorted(EFFECTS))
+    return eff_sensors, only
+
+
+def _frequency_figure(r: _Reader, fig: dict, scen_ids: list[str], input_ids: list[str],
+                      sines: list) -> tuple[str, list]:
+    """``figures.frequency_comparison``: its scenario and its two inputs."""
     fc = r.mapping(fig.get("frequency_comparison", {}), "figures.frequency_comparison",
                    ("scenario", "inputs"))
     default_fs = "free_tie_rods" if "free_tie_rods" in scen_ids else scen_ids[0]
@@ -383,6 +425,10 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
         raise r.fail("figures.frequency_comparison.inputs", "expected two input ids")
     for k, i in enumerate(fig_in):
         r.text(i, f"figures.frequency_comparison.inputs[{k}]", input_ids)
+    return fig_scen, fig_in
+
+
+def _proof_effects(r: _Reader, proof: dict) -> list:
     proof_effects = r.seq(proof.get("effects", []), "proof.effects", min_len=0)
     from mbst.systems.eps.bench import parse_effect
 
@@ -391,58 +437,48 @@ def parse_plan(doc, path: str | Path = "PLAN.yaml") -> PlanConfig:
             parse_effect(r.text(e, f"proof.effects[{k}]"))
         except (KeyError, ValueError) as exc:
             raise r.fail(f"proof.effects[{k}]", str(exc).strip("'\"")) from None
+    return proof_effects
+
+
+def _switches(r: _Reader, sections: dict[str, dict]) -> dict[str, bool]:
+    """The yes/no keys, each true unless set."""
     bools = {}
-    for key, obj, default in (("selection.controls", sel.get("controls"), True),
-                              ("effects.enabled", eff.get("enabled"), True),
-                              ("proof.enabled", proof.get("enabled"), True),
-                              ("proof.joint_refinement", proof.get("joint_refinement"), True),
-                              ("proof.range_prior", proof.get("range_prior"), True)):
-        v = default if obj is None else obj
+    for key in ("selection.controls", "effects.enabled", "proof.enabled",
+                "proof.joint_refinement", "proof.range_prior"):
+        section, name = key.split(".")
+        v = sections[section].get(name)
+        v = True if v is None else v
         if not isinstance(v, bool):
             raise r.fail(key, "expected true or false")
         bools[key] = v
-    n_selectable = sum(not s.mandatory for s in sensors)
-    return PlanConfig(
-        path=str(path),
-        name=r.text(doc.get("name", Path(path).stem), "name"),
+    return bools
+
+
+def _numbers(r: _Reader, doc: dict, sections: dict[str, dict]) -> dict:
+    """The numeric settings, each checked against its range (``PlanConfig`` fields)."""
+    sweep, sel, eff = sections["sweep"], sections["selection"], sections["effects"]
+    proof = sections["proof"]
+    return dict(
         seed=r.integer(doc.get("seed", 0), "seed", 0),
-        known={k: float(v) for k, v in known.items()},
         sample_rate_hz=r.number(doc.get("sample_rate_hz", 500.0), "sample_rate_hz", lo=10.0),
         analysis_rate_hz=r.number(doc.get("analysis_rate_hz", 200.0), "analysis_rate_hz",
                                   lo=10.0),
         model_error_fraction=r.number(doc.get("model_error_fraction", 0.01),
                                       "model_error_fraction", lo=0.0, hi=0.5),
-        unknowns=unknowns,
         sweep_points=r.integer(sweep.get("points", 4), "sweep.points", 1),
         fd_step=r.number(sweep.get("fd_step", 0.02), "sweep.fd_step", lo=1e-4, hi=0.5),
         input_draws=r.integer(sweep.get("input_draws", 4), "sweep.input_draws", 0),
-        sensors=sensors,
-        scenarios=scenarios,
-        inputs=inputs,
         budget=r.number(sel.get("budget", math.inf), "selection.budget", lo=0.0, strict_lo=True),
         target_relative_std=r.number(sel.get("target_relative_std", 0.1),
                                      "selection.target_relative_std", lo=0.0, strict_lo=True),
         max_tests_per_scenario=r.integer(sel.get("max_tests_per_scenario", 3),
                                          "selection.max_tests_per_scenario", 1),
-        controls=bools["selection.controls"],
-        naive_scenario=naive_scen,
-        naive_input=naive_input,
-        naive_sensors=r.integer(naive.get("sensors", min(3, n_selectable)), "naive.sensors", 0),
-        effects_enabled=bools["effects.enabled"],
-        effects_default_sensors=list(eff_sensors),
         effects_min_evidence=r.number(eff.get("min_evidence", 10.0), "effects.min_evidence",
                                       lo=0.0),
         effects_min_unexplained=r.number(eff.get("min_unexplained", 0.5),
                                          "effects.min_unexplained", lo=0.0, hi=1.0),
-        effects_list=list(only) if only is not None else None,
-        fig_scenario=fig_scen,
-        fig_inputs=(fig_in[0], fig_in[1]),
-        proof_enabled=bools["proof.enabled"],
         proof_seed=r.integer(proof.get("seed", 0), "proof.seed", 0),
-        proof_effects=list(proof_effects),
         proof_multistart=r.integer(proof.get("multistart", 2), "proof.multistart", 1),
-        proof_joint_refinement=bools["proof.joint_refinement"],
-        proof_range_prior=bools["proof.range_prior"],
     )
 
 

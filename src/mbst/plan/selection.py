@@ -113,67 +113,145 @@ def _objective(rel: np.ndarray, target: float) -> np.ndarray:
 def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
            ) -> tuple[Plan, list[Step], list[str]]:
     """Greedy forward selection then pruning; returns the plan, the path and notes."""
-    cc, ss = len(sens.cells), len(sens.sensors)
-    target = cfg.target_relative_std
-    prior = prior_information(cfg)
-    mandatory = np.array([cfg.sensor(s).mandatory for s in sens.sensors])
-    s_cost = np.array([cfg.sensor(s).cost for s in sens.sensors])
-    # mbst identify fits the campaign-format channels only: a plan that paid for another
-    # sensor would count information no identification uses (they are still ranked)
-    fitted = np.array([SENSORS[s].campaign_channel for s in sens.sensors])
-    logged = logged_mask(sens)  # (C, S)
-    gram = sens.gram * rate_factor
-    colsum = sens.colsum * rate_factor
-    nsamp = sens.n_samples[:, None] * logged * rate_factor  # (C, S)
-
-    chosen = mandatory.copy()
-    counts = np.zeros(cc, int)
-    a = np.zeros_like(gram[:, 0])  # (K, S, P, P)
-    b = np.zeros_like(colsum[:, 0])
-    n = np.zeros(ss)
-    steps: list[Step] = []
+    search = _Search.start(cfg, sens, rate_factor)
+    steps = [search.step("start: " + ", ".join(
+        s for s, m in zip(sens.sensors, search.mandatory, strict=True) if m))]
     notes: list[str] = []
+    while search.rel.max() > search.target:
+        moves = search.moves()
+        if not moves.kinds:
+            break
+        dcost = np.array(moves.dcost)
+        feasible = search.cost + dcost <= cfg.budget + 1e-9
+        if not feasible.any():
+            notes.append(f"budget {cfg.budget:g} reached at cost {search.cost:g}")
+            break
+        rel_all = relative_std(np.stack(moves.info),
+                               None if search.q is None else np.stack(moves.error))
+        gain = _objective(search.rel, search.target) - _objective(rel_all, search.target)
+        score = np.where(feasible, gain / np.maximum(dcost, 1e-6), -np.inf)
+        best = int(np.argmax(score))
+        if not gain[best] > 1e-9:
+            notes.append("no affordable test or sensor adds information on the parameters "
+                         "still above the target")
+            break
+        steps.append(search.step(search.apply(*moves.kinds[best])))
+    chosen, counts = search.chosen, search.counts
+    if search.rel.max() <= search.target:
+        chosen, counts = _prune(cfg, sens, chosen, counts, search.mandatory, rate_factor,
+                                steps, search.prior)
+    sensors = [s for s, on in zip(sens.sensors, chosen, strict=True) if on]
+    tests = {c: int(v) for c, v in enumerate(counts) if v}
+    return Plan(sensors, tests), steps, notes
 
-    def cost_of(ch: np.ndarray, cnt: np.ndarray) -> float:
+
+@dataclass
+class _Moves:
+    """Every move the greedy step weighs: (kind, cell, sensor) with the information after
+    it, its added cost and the input error after it."""
+
+    kinds: list[tuple] = field(default_factory=list)
+    info: list[np.ndarray] = field(default_factory=list)
+    dcost: list[float] = field(default_factory=list)
+    error: list = field(default_factory=list)
+
+    def add(self, kind: tuple, info: np.ndarray, dcost: float, error) -> None:
+        self.kinds.append(kind)
+        self.info.append(info)
+        self.dcost.append(dcost)
+        self.error.append(error)
+
+
+@dataclass
+class _Search:
+    """The greedy selection's problem (the grid's information at the campaign rate) and
+    where it stands (sensors chosen, tests counted, their information)."""
+
+    cfg: PlanConfig
+    sens: Sensitivity
+    rate_factor: float
+    gram: np.ndarray  # (K, C, S, P, P)
+    colsum: np.ndarray  # (K, C, S, P)
+    nsamp: np.ndarray  # (C, S) samples each test logs per sensor
+    fitted: np.ndarray  # (S,) sensors mbst identify fits
+    logged: np.ndarray  # (C, S)
+    mandatory: np.ndarray
+    s_cost: np.ndarray
+    prior: np.ndarray
+    chosen: np.ndarray
+    counts: np.ndarray
+    a: np.ndarray  # (K, S, P, P) information of the tests chosen
+    b: np.ndarray
+    n: np.ndarray
+    info: np.ndarray | None = None
+    rel: np.ndarray | None = None
+    q: np.ndarray | None = None
+    cost: float = 0.0
+
+    @property
+    def target(self) -> float:
+        return self.cfg.target_relative_std
+
+    @classmethod
+    def start(cls, cfg: PlanConfig, sens: Sensitivity, rate_factor: float) -> _Search:
+        mandatory = np.array([cfg.sensor(s).mandatory for s in sens.sensors])
+        logged = logged_mask(sens)  # (C, S)
+        gram = sens.gram * rate_factor
+        colsum = sens.colsum * rate_factor
+        search = cls(
+            cfg, sens, rate_factor, gram=gram, colsum=colsum,
+            nsamp=sens.n_samples[:, None] * logged * rate_factor,
+            # mbst identify fits the campaign-format channels only: a plan that paid for
+            # another sensor would count information no identification uses (still ranked)
+            fitted=np.array([SENSORS[s].campaign_channel for s in sens.sensors]),
+            logged=logged, mandatory=mandatory,
+            s_cost=np.array([cfg.sensor(s).cost for s in sens.sensors]),
+            prior=prior_information(cfg), chosen=mandatory.copy(),
+            counts=np.zeros(len(sens.cells), int), a=np.zeros_like(gram[:, 0]),
+            b=np.zeros_like(colsum[:, 0]), n=np.zeros(len(sens.sensors)))
+        search.evaluate()
+        return search
+
+    def cost_of(self, ch: np.ndarray, cnt: np.ndarray) -> float:
         tests = {c: int(v) for c, v in enumerate(cnt) if v}
-        return plan_cost(cfg, sens, [s for s, on in zip(sens.sensors, ch, strict=True) if on],
+        return plan_cost(self.cfg, self.sens,
+                         [s for s, on in zip(self.sens.sensors, ch, strict=True) if on],
                          tests)["identification"]
 
-    def info(eff_sel: np.ndarray) -> np.ndarray:
-        return eff_sel.sum(axis=-3)  # sum over sensors (..., S, P, P) → (..., P, P)
+    def per_test_error(self, ch: np.ndarray) -> np.ndarray | None:
+        q = input_error_per_test(self.sens, ch)
+        return None if q is None else self.rate_factor**2 * q  # (K, C, P, P)
 
-    def per_test_error(ch: np.ndarray):
-        q = input_error_per_test(sens, ch)
-        return None if q is None else rate_factor**2 * q  # (K, C, P, P)
-
-    def total_error(q, cnt: np.ndarray):
+    @staticmethod
+    def total_error(q: np.ndarray | None, cnt: np.ndarray) -> np.ndarray | None:
         return None if q is None else np.einsum("c,kcpq->kpq", cnt.astype(float), q)
 
-    def state_eval(ch, aa, bb, nn, cnt):
-        eff = offset_eliminated(aa, bb, nn) * ch[:, None, None]
-        f = info(eff)
-        q = per_test_error(ch)
-        return f, relative_std(f, total_error(q, cnt)), q
+    def evaluate(self) -> None:
+        eff = offset_eliminated(self.a, self.b, self.n) * self.chosen[:, None, None]
+        self.info = eff.sum(axis=-3)  # sum over sensors (..., S, P, P) → (..., P, P)
+        self.q = self.per_test_error(self.chosen)
+        self.rel = relative_std(self.info, self.total_error(self.q, self.counts))
+        self.cost = self.cost_of(self.chosen, self.counts)
 
-    f_cur, rel_cur, q_cur = state_eval(chosen, a, b, n, counts)
-    cost_cur = cost_of(chosen, counts)
-    steps.append(Step("start: " + ", ".join(s for s, m in zip(sens.sensors, mandatory,
-                                                                strict=True) if m),
-                      cost_cur, float(np.mean(bits_gained(f_cur, prior))),
-                      float(rel_cur.max()), int((rel_cur.max(axis=0) <= target).sum())))
-    per_scen = {sc.id: cfg.max_tests_per_scenario for sc in cfg.scenarios}
-    while rel_cur.max() > target:
-        j_cur = _objective(rel_cur, target)
+    def step(self, label: str) -> Step:
+        return Step(label, self.cost, float(np.mean(bits_gained(self.info, self.prior))),
+                    float(self.rel.max()), int((self.rel.max(axis=0) <= self.target).sum()))
+
+    def moves(self) -> _Moves:
+        """Add a test, a sensor with a test, or a sensor to the tests chosen."""
+        sens, chosen, counts = self.sens, self.chosen, self.counts
+        cc, ss = len(sens.cells), len(sens.sensors)
         # per-sensor information after adding each candidate test: (C, K, S, P, P)
-        a_new = a[None] + np.transpose(gram, (1, 0, 2, 3, 4))
-        b_new = b[None] + np.transpose(colsum, (1, 0, 2, 3))
-        n_new = n[None] + nsamp
+        a_new = self.a[None] + np.transpose(self.gram, (1, 0, 2, 3, 4))
+        b_new = self.b[None] + np.transpose(self.colsum, (1, 0, 2, 3))
+        n_new = self.n[None] + self.nsamp
         eff_new = offset_eliminated(a_new, b_new, n_new[:, None, :])
-        eff_cur = offset_eliminated(a, b, n)
-        moves, fs, dcost, bs = [], [], [], []
-        b_cur = total_error(q_cur, counts)
-        q_with = {s: per_test_error(chosen | (np.arange(ss) == s))
-                  for s in np.flatnonzero(~chosen & fitted)}
+        eff_cur = offset_eliminated(self.a, self.b, self.n)
+        out = _Moves()
+        b_cur = self.total_error(self.q, counts)
+        new_sensors = np.flatnonzero(~chosen & self.fitted)
+        q_with = {s: self.per_test_error(chosen | (np.arange(ss) == s)) for s in new_sensors}
+        per_scen = {sc.id: self.cfg.max_tests_per_scenario for sc in self.cfg.scenarios}
         for c in range(cc):
             sid = sens.cells[c].scenario_id
             # a repeat is a candidate too: a fresh draw of the angle noise averages the
@@ -183,58 +261,33 @@ def greedy(cfg: PlanConfig, sens: Sensitivity, rate_factor: float
                 continue
             cnt = counts.copy()
             cnt[c] += 1
-            base_cost = cost_of(chosen, cnt)
-            f_t = info(eff_new[c] * chosen[None, :, None, None])
-            moves.append(("test", c, None))
-            fs.append(f_t)
-            dcost.append(base_cost - cost_cur)
-            bs.append(None if q_cur is None else b_cur + q_cur[:, c])
-            for s in np.flatnonzero(~chosen & fitted):
-                if not logged[c, s]:
-                    continue
-                moves.append(("pair", c, s))
-                fs.append(f_t + eff_new[c][:, s])
-                dcost.append(base_cost + s_cost[s] - cost_cur)
-                bs.append(total_error(q_with[s], cnt))
-        for s in np.flatnonzero(~chosen & fitted):
-            moves.append(("sensor", None, s))
-            fs.append(f_cur + eff_cur[:, s])
-            dcost.append(s_cost[s])
-            bs.append(total_error(q_with[s], counts))
-        if not moves:
-            break
-        dcost = np.array(dcost)
-        feasible = cost_cur + dcost <= cfg.budget + 1e-9
-        if not feasible.any():
-            notes.append(f"budget {cfg.budget:g} reached at cost {cost_cur:g}")
-            break
-        rel_all = relative_std(np.stack(fs), None if q_cur is None else np.stack(bs))
-        gain = j_cur - _objective(rel_all, target)
-        score = np.where(feasible, gain / np.maximum(dcost, 1e-6), -np.inf)
-        best = int(np.argmax(score))
-        if not gain[best] > 1e-9:
-            notes.append("no affordable test or sensor adds information on the parameters "
-                         "still above the target")
-            break
-        kind, c, s = moves[best]
+            base_cost = self.cost_of(chosen, cnt)
+            f_t = (eff_new[c] * chosen[None, :, None, None]).sum(axis=-3)
+            out.add(("test", c, None), f_t, base_cost - self.cost,
+                    None if self.q is None else b_cur + self.q[:, c])
+            for s in new_sensors:
+                if self.logged[c, s]:
+                    out.add(("pair", c, s), f_t + eff_new[c][:, s],
+                            base_cost + self.s_cost[s] - self.cost,
+                            self.total_error(q_with[s], cnt))
+        for s in new_sensors:
+            out.add(("sensor", None, s), self.info + eff_cur[:, s], self.s_cost[s],
+                    self.total_error(q_with[s], counts))
+        return out
+
+    def apply(self, kind: str, c: int | None, s: int | None) -> str:
+        """Take a move; returns its label."""
         label = []
         if s is not None:
-            chosen[s] = True
-            label.append(f"+sensor {sens.sensors[s]}")
+            self.chosen[s] = True
+            label.append(f"+sensor {self.sens.sensors[s]}")
         if c is not None:
-            counts[c] += 1
-            a, b, n = a + gram[:, c], b + colsum[:, c], n + nsamp[c]
-            label.append(f"+test {sens.cells[c].label}")
-        f_cur, rel_cur, q_cur = state_eval(chosen, a, b, n, counts)
-        cost_cur = cost_of(chosen, counts)
-        steps.append(Step(" ".join(label), cost_cur, float(np.mean(bits_gained(f_cur, prior))),
-                          float(rel_cur.max()), int((rel_cur.max(axis=0) <= target).sum())))
-
-    if rel_cur.max() <= target:
-        chosen, counts = _prune(cfg, sens, chosen, counts, mandatory, rate_factor, steps, prior)
-    sensors = [s for s, on in zip(sens.sensors, chosen, strict=True) if on]
-    tests = {c: int(v) for c, v in enumerate(counts) if v}
-    return Plan(sensors, tests), steps, notes
+            self.counts[c] += 1
+            self.a, self.b = self.a + self.gram[:, c], self.b + self.colsum[:, c]
+            self.n = self.n + self.nsamp[c]
+            label.append(f"+test {self.sens.cells[c].label}")
+        self.evaluate()
+        return " ".join(label)
 
 
 def _prune(cfg, sens, chosen, counts, mandatory, rate_factor, steps, prior):
