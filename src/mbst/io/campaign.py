@@ -21,6 +21,7 @@ import re
 import shutil
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -613,11 +614,33 @@ def _load_test_data(
         raise fail(f"unsupported file extension {file_path.suffix!r}")
     if not file_path.is_file():
         raise fail(f"data file not found (file: {spec.file})")
+    df = _read_table(file_path, suffix, fail)
+    # "time_s, steering_angle_rad" (a space after each comma, as some exports write it)
+    df.columns = [str(c).strip() for c in df.columns]
+    names = _header_names(file_path, suffix)
+    twice = sorted({c for c in names if names.count(c) > 1})
+    if twice:
+        raise fail("column given twice in the header; which one is meant is not known",
+                   column=twice[0])
+    present = [ch.name for ch in family.channels if ch.name in df.columns]
+    _as_numbers(df, present, fail)
+    for col in family.required_channels(spec.scenario):
+        if col not in df.columns:
+            raise fail(f"missing column required for scenario '{spec.scenario}'"
+                       + _separator_hint(df), column=col)
+    if len(df) < MIN_SAMPLES:
+        raise fail(f"only {len(df)} samples; at least {MIN_SAMPLES} are needed")
+    _check_measurements(df, present, fail)
+    _check_time(df[family.time_channel].to_numpy(dtype=float), family.time_channel, fail)
+    return df
+
+
+def _read_table(file_path: Path, suffix: str, fail: Callable[..., CampaignError]
+                ) -> pd.DataFrame:
     try:
         if suffix == ".csv":
-            df = pd.read_csv(file_path)
-        else:
-            df = pd.read_parquet(file_path)
+            return pd.read_csv(file_path)
+        return pd.read_parquet(file_path)
     except pd.errors.EmptyDataError as exc:
         raise fail("file is empty (no header line)") from exc
     except pd.errors.ParserError as exc:  # "Expected 4 fields in line 1501, saw 5"
@@ -631,16 +654,10 @@ def _load_test_data(
     except Exception as exc:
         raise fail(f"cannot read {suffix[1:]} file: {type(exc).__name__}: {exc}") from exc
 
-    # "time_s, steering_angle_rad" (a space after each comma, as some exports write it)
-    df.columns = [str(c).strip() for c in df.columns]
-    names = _header_names(file_path, suffix)
-    twice = sorted({c for c in names if names.count(c) > 1})
-    if twice:
-        raise fail("column given twice in the header; which one is meant is not known",
-                   column=twice[0])
-    present = [ch.name for ch in family.channels if ch.name in df.columns]
 
-    # Known channels must be numeric; name the first cell that is not.
+def _as_numbers(df: pd.DataFrame, present: list[str], fail: Callable[..., CampaignError]
+                ) -> None:
+    """Known channels must be numeric (converted in place); name the first cell that is not."""
     for col in present:
         series = df[col]
         if pd.api.types.is_numeric_dtype(series) and not pd.api.types.is_bool_dtype(series):
@@ -653,14 +670,10 @@ def _load_test_data(
             raise fail(f"value {series.iloc[i]!r} is not a number", column=col, row=i + 1)
         df[col] = numeric.astype("float64")
 
-    for col in family.required_channels(spec.scenario):
-        if col not in df.columns:
-            raise fail(f"missing column required for scenario '{spec.scenario}'"
-                       + _separator_hint(df), column=col)
 
-    if len(df) < MIN_SAMPLES:
-        raise fail(f"only {len(df)} samples; at least {MIN_SAMPLES} are needed")
-
+def _check_measurements(df: pd.DataFrame, present: list[str],
+                        fail: Callable[..., CampaignError]) -> None:
+    """No NaN, inf or logger fill value in a known channel."""
     for col in present:
         values = df[col].to_numpy(dtype=float)
         bad = np.flatnonzero(~np.isfinite(values))
@@ -674,8 +687,9 @@ def _load_test_data(
             raise fail(f"value {values[i]:.6g} is no measurement (a logger's fill value for "
                        "a missing sample?)", column=col, row=i + 1)
 
-    time_col = family.time_channel
-    t = df[time_col].to_numpy(dtype=float)
+
+def _check_time(t: np.ndarray, time_col: str, fail: Callable[..., CampaignError]) -> None:
+    """Time strictly increasing and uniform (within ``TIME_UNIFORMITY`` of the median step)."""
     dt = np.diff(t)
     # dt[i] sits between data rows i+1 and i+2 (1-based); blame the later one.
     bad = np.flatnonzero(dt <= 0)
@@ -697,7 +711,6 @@ def _load_test_data(
             column=time_col,
             row=i + 2,
         )
-    return df
 
 
 # --------------------------------------------------------------------------- writing
