@@ -23,6 +23,7 @@ from mbst.core.metrics import correlation_row
 from mbst.core.model import ModelDefinition
 from mbst.identify.fitting import (
     FitProblem,
+    FitResult,
     PreparedTest,
     channel_scales,
     prepare_test,
@@ -323,20 +324,7 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
     p_start = p.copy()
 
     def random_start() -> np.ndarray:
-        q = p_start.copy()
-        for n in free:
-            i = model.param_index[n]
-            spec = model.param_specs[i]
-            if n.startswith("offset."):
-                continue
-            if spec.log_scale and q[i] > 0:
-                q[i] = float(np.clip(q[i] * math.exp(rng.uniform(-0.7, 0.7)),
-                                     spec.lower, spec.upper))
-            else:
-                q[i] = float(np.clip(q[i] + rng.uniform(-0.3, 0.3) *
-                                     (abs(q[i]) + 0.05 * (spec.upper - spec.lower)),
-                                     spec.lower, spec.upper))
-        return q
+        return _random_start(model, free, p_start, rng)
 
     starts = [p.copy()] + [random_start() for _ in range(max(settings.multistart, 1) - 1)]
     # a cost far above what the noise explains is a wrong basin (or a missing effect)
@@ -356,13 +344,40 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
         std_error=fr.std_error, correlation=fr.correlation.round(4).tolist(),
         at_bound=fr.at_bound, identifiable=fr.identifiable,
     )
+    return p, stage, _stage_notes(model, scenario, prob, fr, p)
+
+
+def _random_start(model: ModelDefinition, free: list[str], p_start: np.ndarray,
+                  rng: np.random.Generator) -> np.ndarray:
+    """``p_start`` with each free parameter but the sensor offsets moved at random: up to
+    ×/÷ 2 for a log-scale one, ±30 % (plus 1.5 % of its range) for another."""
+    q = p_start.copy()
+    for n in free:
+        i = model.param_index[n]
+        spec = model.param_specs[i]
+        if n.startswith("offset."):
+            continue
+        if spec.log_scale and q[i] > 0:
+            q[i] = float(np.clip(q[i] * math.exp(rng.uniform(-0.7, 0.7)),
+                                 spec.lower, spec.upper))
+        else:
+            q[i] = float(np.clip(q[i] + rng.uniform(-0.3, 0.3) *
+                                 (abs(q[i]) + 0.05 * (spec.upper - spec.lower)),
+                                 spec.lower, spec.upper))
+    return q
+
+
+def _stage_notes(model: ModelDefinition, scenario: str, prob: FitProblem, fr: FitResult,
+                 p: np.ndarray) -> list[str]:
+    """What the stage's fit says about its parameters: diverged evaluations, parameters
+    held at a partner's ratio, on a bound, or not identifiable."""
     notes = []
     if fr.n_diverged:
         notes.append(f"stage {scenario}: {fr.n_diverged} of {fr.n_eval} evaluations simulated "
                      "a diverging trajectory; each counted as a large finite cost the "
                      "optimiser stepped back from")
     tied = {prob.free[j]: prob.free[k] for j, (k, *_) in prob.ties.items()}
-    for n in free:
+    for n in prob.free:
         spec = model.spec(n)
         if n in tied:
             notes.append(
@@ -381,7 +396,7 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
                 f"'{n}' is not identifiable from the {scenario} tests given "
                 f"(std error {fr.std_error[n]:.3g} for value {p[model.param_index[n]]:.4g})"
             )
-    return p, stage, notes
+    return notes
 
 
 def prob_upper(prob: FitProblem, name: str) -> float:
