@@ -280,36 +280,10 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
     ``upper``.
     """
     out: dict = {"values": {}, "upper": {}, "notes": []}
-    r = p[PARAM_INDEX["pinion_radius_m"]]
-    n_gear = p[PARAM_INDEX["worm_gear_ratio"]]
-    veps = p[PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]]
     tests = [pt for pt in tests if "steering_torque_nm" in pt.measured]
     bc = [pt for pt in tests if pt.scenario == "blocked_column"]
-    col_fc = None
-    if bc:
-        # T = k_t·θ + F_c·tanh(ω/v_ε) + b·ω + offset, linear in the unknowns
-        rows, ys = [], []
-        for pt in bc:
-            th = pt.angle_in_rad
-            om = pt.omega_rad_per_s
-            rows.append(np.column_stack([th, np.tanh(om / veps), om, np.ones_like(th)]))
-            ys.append(pt.measured["steering_torque_nm"])
-        a, y = np.vstack(rows), np.concatenate(ys)
-        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-        r2 = 1 - np.sum((y - a @ coef) ** 2) / np.sum((y - y.mean()) ** 2)
-        kt, col_fc, col_b, off = (float(c) for c in coef)
-        col_fc = max(col_fc, 1e-3)
-        out["values"].update({
-            "torsion_bar.stiffness_nm_per_rad": kt,
-            "steering_column.coulomb_nm": col_fc,
-            "steering_column.viscous_nms_per_rad": max(col_b, 0.0),
-            "offset.steering_torque_nm": off,
-        })
-        out["blocked_column_regression"] = {
-            "tests": [pt.id for pt in bc], "samples": len(y), "r2": float(r2),
-            "torsion_bar_stiffness_nm_per_rad": kt, "column_coulomb_nm": col_fc,
-            "column_viscous_nms_per_rad": col_b, "torque_offset_nm": off,
-        }
+    veps = p[PARAM_INDEX["steering_column.regularisation_velocity_rad_per_s"]]
+    col_fc = _blocked_column_regression(bc, veps, out) if bc else None
     # powered tests have their own friction picture (seed 001 Fig. 11): kept apart
     passive = [pt for pt in tests if pt.spec.motor != "assist"]
     # without the free tie-rods cut-out, free wheels (suspended) are the least loaded
@@ -320,47 +294,92 @@ def pre_identify(campaign: Campaign, tests: list[PreparedTest], p: np.ndarray) -
         out["notes"].append("no free tie-rods test goes both ways through its range: "
                             "friction starts and bounds left at their defaults")
     if slow is not None:
-        ab = _loop_half_width(slow)
-        if ab is not None:
-            budget = max(ab - (col_fc or 0.0), 0.05 * ab)
-            # split as the fit holds it (``ties``): motor = rack × their typical ratio
-            share = EPS_TIES["motor.coulomb_nm"][1]
-            out["values"]["rack.coulomb_n"] = budget / (r + share * n_gear)
-            out["values"]["motor.coulomb_nm"] = share * budget / (r + share * n_gear)
-            # seed 001: the loop width bounds the whole friction (2× margin for viscous/inertia)
-            out["upper"]["rack.coulomb_n"] = 2.0 * ab / r
-            out["upper"]["motor.coulomb_nm"] = 2.0 * ab / n_gear
-            out["hysteresis_free_tie_rods"] = {
-                "test": slow.id, "half_width_nm": ab, "column_share_nm": col_fc,
-                "rack_coulomb_start_n": out["values"]["rack.coulomb_n"],
-                "motor_coulomb_start_nm": out["values"]["motor.coulomb_nm"],
-            }
-        if "rack_position_m" in slow.measured:
-            th = slow.angle_in_rad
-            x = slow.measured["rack_position_m"]
-            slope = float(np.polyfit(th, x, 1)[0])
-            out["rack_to_angle_ratio"] = {
-                "test": slow.id, "slope_m_per_rad": slope, "pinion_radius_m": float(r),
-                "ratio_to_known_radius": slope / r,
-            }
-            if abs(slope / r - 1) > 0.15:
-                out["notes"].append(
-                    f"rack/angle slope {slope:.3e} m/rad differs by "
-                    f"{100 * (slope / r - 1):+.0f} % from the known pinion radius {r:.3e} m"
-                )
-    tg = [pt for pt in passive if pt.scenario == "tires_on_ground"]
-    slow3 = _slowest_loop(campaign, tg)
-    if slow3 is not None and slow is not None:
-        ab3 = _loop_half_width(slow3)
-        ab2 = out.get("hysteresis_free_tie_rods", {}).get("half_width_nm")
-        if ab3 is not None and ab2 is not None and ab3 > ab2:
-            out["values"]["tires.coulomb_n"] = (ab3 - ab2) / r
-            out["hysteresis_tires_on_ground"] = {"test": slow3.id, "half_width_nm": ab3,
-                                                 "tires_coulomb_start_n": (ab3 - ab2) / r}
+        _free_tie_rods_friction(slow, p, col_fc, out)
+        _tires_friction(_slowest_loop(campaign, [pt for pt in passive
+                                                 if pt.scenario == "tires_on_ground"]),
+                        p[PARAM_INDEX["pinion_radius_m"]], out)
     if any(pt.spec.motor == "assist" for pt in tests):
         _pre_identify_assist(campaign, tests, p, out, col_fc or 0.0,
                              out["values"].get("offset.steering_torque_nm", 0.0))
     return out
+
+
+def _blocked_column_regression(bc: list[PreparedTest], veps: float, out: dict) -> float:
+    """Torsion bar and column friction from the blocked-column tests, linear in the
+    unknowns: T = k_t·θ + F_c·tanh(ω/v_ε) + b·ω + offset. Returns the column's Coulomb
+    level; the estimates go to ``out``."""
+    rows, ys = [], []
+    for pt in bc:
+        th = pt.angle_in_rad
+        om = pt.omega_rad_per_s
+        rows.append(np.column_stack([th, np.tanh(om / veps), om, np.ones_like(th)]))
+        ys.append(pt.measured["steering_torque_nm"])
+    a, y = np.vstack(rows), np.concatenate(ys)
+    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    r2 = 1 - np.sum((y - a @ coef) ** 2) / np.sum((y - y.mean()) ** 2)
+    kt, col_fc, col_b, off = (float(c) for c in coef)
+    col_fc = max(col_fc, 1e-3)
+    out["values"].update({
+        "torsion_bar.stiffness_nm_per_rad": kt,
+        "steering_column.coulomb_nm": col_fc,
+        "steering_column.viscous_nms_per_rad": max(col_b, 0.0),
+        "offset.steering_torque_nm": off,
+    })
+    out["blocked_column_regression"] = {
+        "tests": [pt.id for pt in bc], "samples": len(y), "r2": float(r2),
+        "torsion_bar_stiffness_nm_per_rad": kt, "column_coulomb_nm": col_fc,
+        "column_viscous_nms_per_rad": col_b, "torque_offset_nm": off,
+    }
+    return col_fc
+
+
+def _free_tie_rods_friction(slow: PreparedTest, p: np.ndarray, col_fc: float | None,
+                            out: dict) -> None:
+    """The friction budget from the slowest free tie-rods loop's half-width (seed 001),
+    split between motor and rack, with upper bounds; the rack-to-angle slope checked
+    against the known pinion radius."""
+    r = p[PARAM_INDEX["pinion_radius_m"]]
+    n_gear = p[PARAM_INDEX["worm_gear_ratio"]]
+    ab = _loop_half_width(slow)
+    if ab is not None:
+        budget = max(ab - (col_fc or 0.0), 0.05 * ab)
+        # split as the fit holds it (``ties``): motor = rack × their typical ratio
+        share = EPS_TIES["motor.coulomb_nm"][1]
+        out["values"]["rack.coulomb_n"] = budget / (r + share * n_gear)
+        out["values"]["motor.coulomb_nm"] = share * budget / (r + share * n_gear)
+        # seed 001: the loop width bounds the whole friction (2× margin for viscous/inertia)
+        out["upper"]["rack.coulomb_n"] = 2.0 * ab / r
+        out["upper"]["motor.coulomb_nm"] = 2.0 * ab / n_gear
+        out["hysteresis_free_tie_rods"] = {
+            "test": slow.id, "half_width_nm": ab, "column_share_nm": col_fc,
+            "rack_coulomb_start_n": out["values"]["rack.coulomb_n"],
+            "motor_coulomb_start_nm": out["values"]["motor.coulomb_nm"],
+        }
+    if "rack_position_m" in slow.measured:
+        th = slow.angle_in_rad
+        x = slow.measured["rack_position_m"]
+        slope = float(np.polyfit(th, x, 1)[0])
+        out["rack_to_angle_ratio"] = {
+            "test": slow.id, "slope_m_per_rad": slope, "pinion_radius_m": float(r),
+            "ratio_to_known_radius": slope / r,
+        }
+        if abs(slope / r - 1) > 0.15:
+            out["notes"].append(
+                f"rack/angle slope {slope:.3e} m/rad differs by "
+                f"{100 * (slope / r - 1):+.0f} % from the known pinion radius {r:.3e} m"
+            )
+
+
+def _tires_friction(slow3: PreparedTest | None, r: float, out: dict) -> None:
+    """The tires' Coulomb start: what the tires-on-ground loop adds to the free tie-rods'."""
+    if slow3 is None:
+        return
+    ab3 = _loop_half_width(slow3)
+    ab2 = out.get("hysteresis_free_tie_rods", {}).get("half_width_nm")
+    if ab3 is not None and ab2 is not None and ab3 > ab2:
+        out["values"]["tires.coulomb_n"] = (ab3 - ab2) / r
+        out["hysteresis_tires_on_ground"] = {"test": slow3.id, "half_width_nm": ab3,
+                                             "tires_coulomb_start_n": (ab3 - ab2) / r}
 
 
 def _branch_interp(x_from: np.ndarray, y_from: np.ndarray, x_to: np.ndarray) -> np.ndarray:
