@@ -23,6 +23,7 @@ Only Gram matrices are needed (``Sensitivity.effect_gram``).
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -96,39 +97,14 @@ def effect_observability(cfg: PlanConfig, sens: Sensitivity, plan: Plan | None,
         return []
     p = len(sens.unknowns)
     mg = sens.effect_gram * rate_factor  # (C, S, A, A)
-    s_index = {s: i for i, s in enumerate(sens.sensors)}
-    default = np.zeros(len(sens.sensors))
-    for s in cfg.effects_default_sensors:
-        default[s_index[s]] = 1.0
+    default = _default_sensor_mask(cfg, sens)
     r_def = residual_gram(np.einsum("s,csab->ab", default, mg), p)
     looks = _look_alikes(residual_gram(np.einsum("s,csab->cab", default, mg), p),
                          cfg.effects_min_evidence)
     looks_all = _look_alikes(residual_gram(mg.sum(axis=1), p), cfg.effects_min_evidence)
-
-    r_plan = None
-    if plan is not None:
-        smask = np.array([s in plan.logged for s in sens.sensors], float)
-        counts = plan.counts(len(sens.cells))
-        r_plan = residual_gram(np.einsum("c,s,csab->ab", counts, smask, mg), p)
-
+    r_plan = None if plan is None else _plan_residual_gram(sens, plan, mg, p)
     mand = [i for i, s in enumerate(sens.sensors) if cfg.sensor(s).mandatory]
-    mand_cost = sum(cfg.sensor(sens.sensors[i]).cost for i in mand)
-    logged = logged_mask(sens)
-    # per cell: every subset of the optional sensors that move in that scenario
-    cands = []
-    for c, cell in enumerate(sens.cells):
-        opt = [i for i in range(len(sens.sensors)) if i not in mand and logged[c, i]]
-        subsets = [()]
-        for k in range(1, len(opt) + 1):
-            subsets += list(itertools.combinations(opt, k))
-        masks = np.zeros((len(subsets), len(sens.sensors)))
-        costs = np.zeros(len(subsets))
-        for b, sub in enumerate(subsets):
-            masks[b, list(sub) + mand] = 1.0
-            costs[b] = mand_cost + sum(cfg.sensor(sens.sensors[i]).cost for i in sub)
-        costs += cfg.scenario(cell.scenario_id).cost + cfg.input(cell.input_id).cost
-        r = residual_gram(np.einsum("bs,sxy->bxy", masks, mg[c]), p)
-        cands.append((c, subsets, costs, r))
+    options = _test_options(cfg, sens, mg, mand)
 
     rows = []
     for e, key in enumerate(sens.effects):
@@ -136,41 +112,123 @@ def effect_observability(cfg: PlanConfig, sens: Sensitivity, plan: Plan | None,
         if f is None:
             f, c2 = looks_all[e]
         ev_def, sh_def = separation(r_def, e, f)
-        best = None
-        for c, subsets, costs, r in cands:
-            ev, sh = separation(r, e, f)
-            ok = (ev >= cfg.effects_min_evidence) & (sh >= cfg.effects_min_unexplained)
-            if not ok.any():
-                continue
-            # cheapest, then the most evidence
-            order = np.lexsort((-ev, costs))
-            b = int(next(i for i in order if ok[i]))
-            cand = (float(costs[b]), -float(ev[b]), c, subsets[b], float(ev[b]), float(sh[b]))
-            if best is None or cand[:2] < best[:2]:
-                best = cand
+        best = _cheapest_separation(cfg, options, e, f)
         row = {
             "effect": key,
             "look_alike": sens.effects[f] if f is not None else "",
             "similarity_at_defaults": round(c2, 4),
             "evidence_at_defaults": float(ev_def),
-            "separated_at_defaults": bool(ev_def >= cfg.effects_min_evidence
-                                          and sh_def >= cfg.effects_min_unexplained),
+            "separated_at_defaults": _separated(cfg, ev_def, sh_def),
         }
         if r_plan is not None:
             ev_p, sh_p = separation(r_plan, e, f)
             row["evidence_in_plan"] = float(ev_p)
-            row["separated_by_plan"] = bool(ev_p >= cfg.effects_min_evidence
-                                            and sh_p >= cfg.effects_min_unexplained)
-        if best is None:
-            row.update({"cheapest_scenario": "", "cheapest_input": "", "cheapest_sensors": "",
-                        "cheapest_cost": float("nan"), "evidence": float("nan"),
-                        "unexplained_share": float("nan")})
-        else:
-            cost, _, c, sub, ev, sh = best
-            names = [sens.sensors[i] for i in mand] + [sens.sensors[i] for i in sub]
-            row.update({"cheapest_scenario": sens.cells[c].scenario_id,
-                        "cheapest_input": sens.cells[c].input_id,
-                        "cheapest_sensors": " ".join(names), "cheapest_cost": cost,
-                        "evidence": ev, "unexplained_share": sh})
+            row["separated_by_plan"] = _separated(cfg, ev_p, sh_p)
+        row.update(_cheapest_columns(sens, mand, best))
         rows.append(row)
     return rows
+
+
+def _default_sensor_mask(cfg: PlanConfig, sens: Sensitivity) -> np.ndarray:
+    """(S,) 1 for the sensors ``effects.default_sensors`` names, else 0."""
+    s_index = {s: i for i, s in enumerate(sens.sensors)}
+    default = np.zeros(len(sens.sensors))
+    for s in cfg.effects_default_sensors:
+        default[s_index[s]] = 1.0
+    return default
+
+
+def _plan_residual_gram(sens: Sensitivity, plan: Plan, mg: np.ndarray, p: int) -> np.ndarray:
+    """(E, E) residual Gram of the plan's tests on the sensors it logs."""
+    smask = np.array([s in plan.logged for s in sens.sensors], float)
+    counts = plan.counts(len(sens.cells))
+    return residual_gram(np.einsum("c,s,csab->ab", counts, smask, mg), p)
+
+
+def _separated(cfg: PlanConfig, evidence: np.ndarray, share: np.ndarray) -> bool:
+    """Whether what a look-alike cannot mimic is both large and a large enough share."""
+    return bool(evidence >= cfg.effects_min_evidence and share >= cfg.effects_min_unexplained)
+
+
+@dataclass
+class _TestOption:
+    """One test (cell) with every sensor set the search tries on it."""
+
+    cell: int
+    subsets: list[tuple[int, ...]]  # optional sensors added to the mandatory ones
+    costs: np.ndarray  # (B,) test plus sensors
+    residual: np.ndarray  # (B, E, E) residual Gram of each sensor set
+
+
+def _sensor_subsets(optional: list[int]) -> list[tuple[int, ...]]:
+    """Every subset of ``optional``, the empty one first, then by size."""
+    subsets = [()]
+    for k in range(1, len(optional) + 1):
+        subsets += list(itertools.combinations(optional, k))
+    return subsets
+
+
+def _test_options(cfg: PlanConfig, sens: Sensitivity, mg: np.ndarray, mand: list[int]
+                  ) -> list[_TestOption]:
+    """Per cell: every subset of the optional sensors that move in that scenario, with the
+    mandatory sensors, priced and reduced to its residual Gram."""
+    p = len(sens.unknowns)
+    mand_cost = sum(cfg.sensor(sens.sensors[i]).cost for i in mand)
+    logged = logged_mask(sens)
+    options = []
+    for c, cell in enumerate(sens.cells):
+        opt = [i for i in range(len(sens.sensors)) if i not in mand and logged[c, i]]
+        subsets = _sensor_subsets(opt)
+        masks = np.zeros((len(subsets), len(sens.sensors)))
+        costs = np.zeros(len(subsets))
+        for b, sub in enumerate(subsets):
+            masks[b, list(sub) + mand] = 1.0
+            costs[b] = mand_cost + sum(cfg.sensor(sens.sensors[i]).cost for i in sub)
+        costs += cfg.scenario(cell.scenario_id).cost + cfg.input(cell.input_id).cost
+        r = residual_gram(np.einsum("bs,sxy->bxy", masks, mg[c]), p)
+        options.append(_TestOption(c, subsets, costs, r))
+    return options
+
+
+@dataclass
+class _Separation:
+    """The cheapest test and sensor set found to separate an effect from its look-alike."""
+
+    cost: float
+    cell: int
+    subset: tuple[int, ...]
+    evidence: float
+    share: float
+
+
+def _cheapest_separation(cfg: PlanConfig, options: list[_TestOption], e: int, f: int | None
+                         ) -> _Separation | None:
+    """Over every test and sensor set: the cheapest that separates effect ``e`` from ``f``,
+    then the one with the most evidence (None if none does)."""
+    best = None
+    for opt in options:
+        ev, sh = separation(opt.residual, e, f)
+        ok = (ev >= cfg.effects_min_evidence) & (sh >= cfg.effects_min_unexplained)
+        if not ok.any():
+            continue
+        # cheapest, then the most evidence
+        order = np.lexsort((-ev, opt.costs))
+        b = int(next(i for i in order if ok[i]))
+        cand = _Separation(float(opt.costs[b]), opt.cell, opt.subsets[b], float(ev[b]),
+                           float(sh[b]))
+        if best is None or (cand.cost, -cand.evidence) < (best.cost, -best.evidence):
+            best = cand
+    return best
+
+
+def _cheapest_columns(sens: Sensitivity, mand: list[int], best: _Separation | None) -> dict:
+    """The ``cheapest_*``, ``evidence`` and ``unexplained_share`` columns of an effect's row."""
+    if best is None:
+        return {"cheapest_scenario": "", "cheapest_input": "", "cheapest_sensors": "",
+                "cheapest_cost": float("nan"), "evidence": float("nan"),
+                "unexplained_share": float("nan")}
+    names = [sens.sensors[i] for i in mand] + [sens.sensors[i] for i in best.subset]
+    return {"cheapest_scenario": sens.cells[best.cell].scenario_id,
+            "cheapest_input": sens.cells[best.cell].input_id,
+            "cheapest_sensors": " ".join(names), "cheapest_cost": best.cost,
+            "evidence": best.evidence, "unexplained_share": best.share}

@@ -177,6 +177,18 @@ def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, fo
         if progress:
             print(f"plan: proof — identifying the {label} campaign", flush=True)
         results[label] = _identify(cfg, sens, plan, p_true, cfg.proof_seed, folder, label)
+    errors = _parameter_errors(cfg, results, p_true, predicted)
+    fit = _control_fit(results, folder, p_true)
+    summary = _comparison(errors, fit, results, folder)
+    promised = list(cfg.unknown_names if promised is None else promised)
+    summary.update(_verdict(errors, summary, results, promised, predicted is not None))
+    return ProofResult(errors, fit, summary)
+
+
+def _parameter_errors(cfg: PlanConfig, results: dict[str, _Identified], p_true: np.ndarray,
+                      predicted: dict[str, np.ndarray] | None) -> pd.DataFrame:
+    """Per unknown: the truth, each campaign's estimate, its relative error, the relative
+    std the fit reports and (if given) the one the plan predicted."""
     rows = []
     for k, u in enumerate(cfg.unknowns):
         i = PARAM_INDEX[u.name]
@@ -190,9 +202,13 @@ def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, fo
             if predicted is not None:
                 row[f"{label}_predicted_relative_std"] = float(predicted[label][k])
         rows.append(row)
-    errors = pd.DataFrame(rows)
+    return pd.DataFrame(rows)
 
-    # shared validation: every control test of both campaigns, predicted by both models
+
+def _control_fit(results: dict[str, _Identified], folder: Path, p_true: np.ndarray
+                 ) -> pd.DataFrame:
+    """FIT % of each model and the truth on the shared validation set (every control test of
+    both campaigns), each channel marked whether the means compare it."""
     fit_rows = []
     for owner, res in results.items():
         controls = [res.prepared[s.id] for s in
@@ -212,8 +228,15 @@ def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, fo
     logged = [{ch for pt in r.prepared.values() for ch in pt.measured} for r in results.values()]
     fit["compared"] = (fit["channel"].isin(set.intersection(*logged))
                        & (fit["truth_fit_percent"] >= SIGNAL_FIT_PERCENT))
+    return fit
+
+
+def _comparison(errors: pd.DataFrame, fit: pd.DataFrame, results: dict[str, _Identified],
+                folder: Path) -> dict:
+    """The summary's side-by-side figures: parameter errors, control FIT on the compared
+    channels, wall time, tests and warnings of each campaign."""
     shared = fit[fit["compared"]]
-    summary = {
+    return {
         "median_relative_error": {lab: float(errors[f"{lab}_relative_error"].median())
                                   for lab in results},
         "max_relative_error": {lab: float(errors[f"{lab}_relative_error"].max())
@@ -227,20 +250,24 @@ def run_proof(cfg: PlanConfig, sens: Sensitivity, planned: Plan, naive: Plan, fo
                   for lab in results},
         "warnings": {lab: r.warnings for lab, r in results.items()},
     }
-    promised = list(cfg.unknown_names if promised is None else promised)
+
+
+def _verdict(errors: pd.DataFrame, comparison: dict, results: dict[str, _Identified],
+             promised: list[str], with_prediction: bool) -> dict:
+    """The summary's verdict: errors on the promised unknowns, the prediction's check and
+    whether planning pays (promised parameters and control FIT both better)."""
     kept = errors["parameter"].isin(promised)
-    summary["promised"] = promised
-    summary["rms_log_error_promised"] = {
-        lab: _rms_log_error(errors[kept], lab) if kept.any() else 0.0 for lab in results}
-    if predicted is not None:
+    rms = {lab: _rms_log_error(errors[kept], lab) if kept.any() else 0.0 for lab in results}
+    out = {"promised": promised, "rms_log_error_promised": rms}
+    if with_prediction:
         # the issue's check of the prediction: realised error within twice the predicted σ
         ok = errors["planned_relative_error"] <= 2.0 * errors["planned_predicted_relative_std"]
-        summary["confirmed_within_factor_two"] = sorted(errors.loc[ok, "parameter"])
-    summary["planning_pays"] = bool(
-        summary["rms_log_error_promised"]["planned"] < summary["rms_log_error_promised"]["naive"]
-        and summary["mean_control_fit_percent"]["planned"]
-        > summary["mean_control_fit_percent"]["naive"])
-    return ProofResult(errors, fit, summary)
+        out["confirmed_within_factor_two"] = sorted(errors.loc[ok, "parameter"])
+    fit = comparison["mean_control_fit_percent"]
+    out["planning_pays"] = bool(
+        out["rms_log_error_promised"]["planned"] < out["rms_log_error_promised"]["naive"]
+        and fit["planned"] > fit["naive"])
+    return out
 
 
 __all__ = ["INPUT_SENSOR", "ProofResult", "bench_tests", "campaign_tests", "run_proof"]

@@ -19,7 +19,7 @@ from mbst.plan.information import (
     prior_information,
 )
 from mbst.plan.proof import campaign_tests
-from mbst.plan.selection import Plan, plan_cost
+from mbst.plan.selection import Plan, Step, plan_cost
 from mbst.plan.sensitivity import Sensitivity
 from mbst.plan.sensors import SENSORS, logged_channels
 from mbst.systems.eps.bench import KNOWN
@@ -155,111 +155,152 @@ def markdown(cfg: PlanConfig, res) -> str:
     """plan.md: what was chosen, why, what it predicts, what the bench says."""
     sens = res.sensitivity
     d = res.record
-    pl, nv = d["planned"], d["naive"]
-    lines = [f"# Campaign plan `{cfg.name}`", "",
-             f"Analysis: {len(sens.sensors)} sensors × {len(cfg.scenarios)} scenarios × "
-             f"{len(cfg.inputs)} inputs, {len(sens.unknowns)} unknowns swept at "
-             f"{len(sens.points)} points, {sens.n_simulations} simulations in "
-             f"{sens.wall_s:.1f} s (selection {d['timing']['selection_s']:.2f} s).", "",
-             "## Chosen plan", "",
-             f"- sensors: {', '.join(pl['sensors'])}"
-             + (f" (+ required by the campaign format: {', '.join(pl['format_required_sensors'])})"
-                if pl["format_required_sensors"] else ""),
-             f"- scenarios: {', '.join(pl['scenarios'])}",
-             "- identification tests: " + ", ".join(
-                 f"{t['scenario']}/{t['input']}" + (f" ×{t['repetitions']}"
-                                                    if t["repetitions"] > 1 else "")
-                 for t in pl["tests"]),
-             "- control tests: " + (", ".join(f"{t['scenario']}/{t['input']}"
-                                              for t in pl["controls"]) or "none"),
-             f"- cost: {pl['cost']['total']:.2f} in all (identification {pl['cost']['identification']:.2f}"
-             f", budget {cfg.budget:g}); every unknown at ≤ {100 * cfg.target_relative_std:g} % "
-             f"predicted: {'yes' if d['planned_identifiability']['all_identifiable'] else 'NO'}",
-             "", "Greedy path (selection_path.csv, figures/information_vs_cost.png):", ""]
-    for k, st in enumerate(res.steps):
-        lines.append(f"{k}. {st.move} — cost {st.cost:.2f}, {st.bits:.0f} bits, worst σ "
-                     f"{st.worst_relative_std:.3g}, {st.n_identifiable} identifiable")
-    for n in res.notes:
-        lines.append(f"- note: {n}")
-    lines += ["", "## Predicted identifiability (relative standard error, worst over the sweep)",
-              "", "| parameter | planned | naive |", "|---|---|---|"]
-    for p, a, b in zip(sens.unknowns, d["planned_identifiability"]["worst_relative_std"],
-                       d["naive_identifiability"]["worst_relative_std"], strict=True):
-        lines.append(f"| {p} | {a:.3g} | {b:.3g} |")
-    above = d["planned_identifiability"].get("above_target", [])
-    if above:
-        lines += ["", f"Unknowns the plan leaves above {100 * cfg.target_relative_std:g} %, and "
-                  "what it does pin down: the best-determined product θ_a·θ_b^x of each with "
-                  "the other unknown above the target most correlated with it (|r| ≥ "
-                  f"{PARTNER_CORRELATION:g}, at its worst sweep point; for two terms of one sum "
-                  "x is the ratio of their shares). A small σ there means the tests see the "
-                  "two only together: fix one (a datasheet, a separate test) or lump them.",
-                  "",
-                  "| unknown | σ | correlated with (r) | identified combination | its σ |",
-                  "|---|---|---|---|---|"]
-        for c in above:
-            partners = ", ".join(f"`{n}` ({r:+.2f})" for n, r in c["partners"].items()) or "–"
-            if "exponents" in c:
-                combo = " · ".join(f"{n}^{x:.2g}" if abs(x - 1) > 1e-9 else n
-                                   for n, x in c["exponents"].items())
-                sig = f"{c['combination_relative_std']:.3g}"
-            else:
-                combo, sig = "– (no partner above the target)", "–"
-            lines.append(f"| `{c['parameter']}` | {c['relative_std']:.3g} | {partners} | "
-                         f"{combo} | {sig} |")
-    lines += ["", f"Planned: condition number {d['planned_identifiability']['condition_number']:.3g}"
-              f", largest |correlation| {d['planned_identifiability']['max_abs_correlation']:.3f} "
-              "(correlation.csv).",
-              f"Naive ({nv['tests'][0]['scenario']}/{nv['tests'][0]['input']} ×"
-              f"{nv['tests'][0]['repetitions']}, sensors {', '.join(nv['sensors'])}; cost "
-              f"{nv['cost']['total']:.2f}): {sum(d['naive_identifiability']['identifiable'])} of "
-              f"{len(sens.unknowns)} identifiable.", ""]
+    lines = _chosen_plan_lines(cfg, sens, d)
+    lines += _greedy_path_lines(res.steps, res.notes)
+    lines += _identifiability_lines(cfg, sens, d)
     if res.effects:
-        lines += ["## Effects: cheapest sensors and test that separate each from its look-alike",
-                  "", "| effect | look-alike (cos²) | separated at defaults | by the plan | "
-                  "cheapest test | sensors | cost |", "|---|---|---|---|---|---|---|"]
-        for r in res.effects:
-            test = (f"{r['cheapest_scenario']}/{r['cheapest_input']}"
-                    if r["cheapest_scenario"] else "none in the grid")
-            lines.append(f"| {r['effect']} | {r['look_alike']} ({r['similarity_at_defaults']:.2f})"
-                         f" | {'yes' if r['separated_at_defaults'] else 'no'} | "
-                         f"{'yes' if r.get('separated_by_plan') else 'no'} | {test} | "
-                         f"{r['cheapest_sensors']} | {r['cheapest_cost']:.2f} |")
-        lines.append("")
+        lines += _effects_lines(res.effects)
     if res.proof is not None:
-        s = res.proof.summary
-        lines += ["## Proof on the virtual bench (planned vs naive, equal cost)", "",
-                  "| | planned | naive |", "|---|---|---|",
-                  f"| median relative parameter error | {s['median_relative_error']['planned']:.3g}"
-                  f" | {s['median_relative_error']['naive']:.3g} |",
-                  f"| largest relative parameter error | {s['max_relative_error']['planned']:.3g} | "
-                  f"{s['max_relative_error']['naive']:.3g} |",
-                  f"| rms log error, all unknowns | {s['rms_log_error']['planned']:.3g} | "
-                  f"{s['rms_log_error']['naive']:.3g} |",
-                  f"| rms log error, the {len(s['promised'])} the plan promises (σ ≤ target) | "
-                  f"{s['rms_log_error_promised']['planned']:.3g} | "
-                  f"{s['rms_log_error_promised']['naive']:.3g} |",
-                  f"| mean FIT % on all controls (signal channels both logged) | "
-                  f"{s['mean_control_fit_percent']['planned']:.2f} | "
-                  f"{s['mean_control_fit_percent']['naive']:.2f} |",
-                  f"| identification wall time s | {s['identification_wall_s']['planned']:.1f} | "
-                  f"{s['identification_wall_s']['naive']:.1f} |", "",
-                  f"True model on the same controls: {s['mean_control_fit_percent']['truth']:.2f} %"
-                  f" (channels {', '.join(f'`{c}`' for c in s['compared_channels'])})."
-                  f" Within twice the predicted σ on the bench: "
-                  f"{len(s.get('confirmed_within_factor_two', []))} of {len(cfg.unknowns)} "
-                  f"unknowns. Planning pays (promised parameters and control FIT): "
-                  f"**{'yes' if s['planning_pays'] else 'no'}** "
-                  "(proof_errors.csv, proof_fit.csv).", ""]
-    lines += ["## Files", "",
-              "- `campaign.yaml`: the planned campaign (skeleton: no data yet)",
-              "- `plan.json`: everything above, machine-readable",
-              "- `sensitivity.csv`, `sensor_ranking.csv`, `scenario_ranking.csv`, "
-              "`input_ranking.csv`, `test_ranking.csv`, `selection_path.csv`, "
-              "`identifiability.csv`, `correlation.csv`, `effects.csv`",
-              "- `figures/sensitivity_heatmap.png`, `figures/information_vs_cost.png`, "
-              "`figures/frequency_comparison.png`", ""]
+        lines += _proof_lines(cfg, res.proof.summary)
+    lines += _FILES_SECTION
     return "\n".join(lines)
+
+
+def _chosen_plan_lines(cfg: PlanConfig, sens: Sensitivity, d: dict) -> list[str]:
+    """Title, the size of the analysis, and the plan chosen: sensors, tests, cost, verdict."""
+    pl = d["planned"]
+    return [f"# Campaign plan `{cfg.name}`", "",
+            f"Analysis: {len(sens.sensors)} sensors × {len(cfg.scenarios)} scenarios × "
+            f"{len(cfg.inputs)} inputs, {len(sens.unknowns)} unknowns swept at "
+            f"{len(sens.points)} points, {sens.n_simulations} simulations in "
+            f"{sens.wall_s:.1f} s (selection {d['timing']['selection_s']:.2f} s).", "",
+            "## Chosen plan", "",
+            f"- sensors: {', '.join(pl['sensors'])}"
+            + (f" (+ required by the campaign format: {', '.join(pl['format_required_sensors'])})"
+               if pl["format_required_sensors"] else ""),
+            f"- scenarios: {', '.join(pl['scenarios'])}",
+            "- identification tests: " + ", ".join(
+                f"{t['scenario']}/{t['input']}" + (f" ×{t['repetitions']}"
+                                                   if t["repetitions"] > 1 else "")
+                for t in pl["tests"]),
+            "- control tests: " + (", ".join(f"{t['scenario']}/{t['input']}"
+                                             for t in pl["controls"]) or "none"),
+            f"- cost: {pl['cost']['total']:.2f} in all (identification {pl['cost']['identification']:.2f}"
+            f", budget {cfg.budget:g}); every unknown at ≤ {100 * cfg.target_relative_std:g} % "
+            f"predicted: {'yes' if d['planned_identifiability']['all_identifiable'] else 'NO'}",
+            "", "Greedy path (selection_path.csv, figures/information_vs_cost.png):", ""]
+
+
+def _greedy_path_lines(steps: list[Step], notes: list[str]) -> list[str]:
+    """The selection's steps, numbered, then its notes (why it stopped where it did)."""
+    lines = [f"{k}. {st.move} — cost {st.cost:.2f}, {st.bits:.0f} bits, worst σ "
+             f"{st.worst_relative_std:.3g}, {st.n_identifiable} identifiable"
+             for k, st in enumerate(steps)]
+    return lines + [f"- note: {n}" for n in notes]
+
+
+def _identifiability_lines(cfg: PlanConfig, sens: Sensitivity, d: dict) -> list[str]:
+    """Predicted σ of each unknown, planned beside naive, what the plan leaves above the
+    target, and the two campaigns' conditioning."""
+    planned, naive = d["planned_identifiability"], d["naive_identifiability"]
+    nv = d["naive"]
+    lines = ["", "## Predicted identifiability (relative standard error, worst over the sweep)",
+             "", "| parameter | planned | naive |", "|---|---|---|"]
+    for p, a, b in zip(sens.unknowns, planned["worst_relative_std"],
+                       naive["worst_relative_std"], strict=True):
+        lines.append(f"| {p} | {a:.3g} | {b:.3g} |")
+    above = planned.get("above_target", [])
+    if above:
+        lines += _above_target_lines(cfg, above)
+    return lines + [
+        "", f"Planned: condition number {planned['condition_number']:.3g}"
+        f", largest |correlation| {planned['max_abs_correlation']:.3f} (correlation.csv).",
+        f"Naive ({nv['tests'][0]['scenario']}/{nv['tests'][0]['input']} ×"
+        f"{nv['tests'][0]['repetitions']}, sensors {', '.join(nv['sensors'])}; cost "
+        f"{nv['cost']['total']:.2f}): {sum(naive['identifiable'])} of "
+        f"{len(sens.unknowns)} identifiable.", ""]
+
+
+def _above_target_lines(cfg: PlanConfig, above: list[dict]) -> list[str]:
+    """The unknowns left above the target, each with the combination the plan does pin down."""
+    lines = ["", f"Unknowns the plan leaves above {100 * cfg.target_relative_std:g} %, and "
+             "what it does pin down: the best-determined product θ_a·θ_b^x of each with "
+             "the other unknown above the target most correlated with it (|r| ≥ "
+             f"{PARTNER_CORRELATION:g}, at its worst sweep point; for two terms of one sum "
+             "x is the ratio of their shares). A small σ there means the tests see the "
+             "two only together: fix one (a datasheet, a separate test) or lump them.",
+             "",
+             "| unknown | σ | correlated with (r) | identified combination | its σ |",
+             "|---|---|---|---|---|"]
+    return lines + [_combination_row(c) for c in above]
+
+
+def _combination_row(c: dict) -> str:
+    """One unknown above the target: its σ, its partners and their identified product."""
+    partners = ", ".join(f"`{n}` ({r:+.2f})" for n, r in c["partners"].items()) or "–"
+    if "exponents" in c:
+        combo = " · ".join(f"{n}^{x:.2g}" if abs(x - 1) > 1e-9 else n
+                           for n, x in c["exponents"].items())
+        sig = f"{c['combination_relative_std']:.3g}"
+    else:
+        combo, sig = "– (no partner above the target)", "–"
+    return (f"| `{c['parameter']}` | {c['relative_std']:.3g} | {partners} | "
+            f"{combo} | {sig} |")
+
+
+def _effects_lines(effects: list[dict]) -> list[str]:
+    """Per catalogue effect: its look-alike and the cheapest test and sensors that separate
+    the two (``effects.csv``)."""
+    lines = ["## Effects: cheapest sensors and test that separate each from its look-alike",
+             "", "| effect | look-alike (cos²) | separated at defaults | by the plan | "
+             "cheapest test | sensors | cost |", "|---|---|---|---|---|---|---|"]
+    for r in effects:
+        test = (f"{r['cheapest_scenario']}/{r['cheapest_input']}"
+                if r["cheapest_scenario"] else "none in the grid")
+        lines.append(f"| {r['effect']} | {r['look_alike']} ({r['similarity_at_defaults']:.2f})"
+                     f" | {'yes' if r['separated_at_defaults'] else 'no'} | "
+                     f"{'yes' if r.get('separated_by_plan') else 'no'} | {test} | "
+                     f"{r['cheapest_sensors']} | {r['cheapest_cost']:.2f} |")
+    return lines + [""]
+
+
+def _proof_lines(cfg: PlanConfig, s: dict) -> list[str]:
+    """The bench proof's summary: planned beside naive on errors, control FIT and time."""
+    return ["## Proof on the virtual bench (planned vs naive, equal cost)", "",
+            "| | planned | naive |", "|---|---|---|",
+            f"| median relative parameter error | {s['median_relative_error']['planned']:.3g}"
+            f" | {s['median_relative_error']['naive']:.3g} |",
+            f"| largest relative parameter error | {s['max_relative_error']['planned']:.3g} | "
+            f"{s['max_relative_error']['naive']:.3g} |",
+            f"| rms log error, all unknowns | {s['rms_log_error']['planned']:.3g} | "
+            f"{s['rms_log_error']['naive']:.3g} |",
+            f"| rms log error, the {len(s['promised'])} the plan promises (σ ≤ target) | "
+            f"{s['rms_log_error_promised']['planned']:.3g} | "
+            f"{s['rms_log_error_promised']['naive']:.3g} |",
+            f"| mean FIT % on all controls (signal channels both logged) | "
+            f"{s['mean_control_fit_percent']['planned']:.2f} | "
+            f"{s['mean_control_fit_percent']['naive']:.2f} |",
+            f"| identification wall time s | {s['identification_wall_s']['planned']:.1f} | "
+            f"{s['identification_wall_s']['naive']:.1f} |", "",
+            f"True model on the same controls: {s['mean_control_fit_percent']['truth']:.2f} %"
+            f" (channels {', '.join(f'`{c}`' for c in s['compared_channels'])})."
+            f" Within twice the predicted σ on the bench: "
+            f"{len(s.get('confirmed_within_factor_two', []))} of {len(cfg.unknowns)} "
+            f"unknowns. Planning pays (promised parameters and control FIT): "
+            f"**{'yes' if s['planning_pays'] else 'no'}** "
+            "(proof_errors.csv, proof_fit.csv).", ""]
+
+
+# the closing section of plan.md: every file ``write_all`` writes
+_FILES_SECTION = (
+    "## Files", "",
+    "- `campaign.yaml`: the planned campaign (skeleton: no data yet)",
+    "- `plan.json`: everything above, machine-readable",
+    "- `sensitivity.csv`, `sensor_ranking.csv`, `scenario_ranking.csv`, "
+    "`input_ranking.csv`, `test_ranking.csv`, `selection_path.csv`, "
+    "`identifiability.csv`, `correlation.csv`, `effects.csv`",
+    "- `figures/sensitivity_heatmap.png`, `figures/information_vs_cost.png`, "
+    "`figures/frequency_comparison.png`", "")
 
 
 def write_all(out: Path, cfg: PlanConfig, res) -> None:
