@@ -46,6 +46,7 @@ import math
 import time
 from collections.abc import Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -203,6 +204,61 @@ class _LatentODE(nn.Module):
         return self.readout(z.transpose(0, 1)) + self.direct(s)
 
 
+def _window_starts(series: list[tuple[np.ndarray, np.ndarray, np.ndarray]], n_win: int,
+                   n_wash: int) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """Every (test, sample) a training window can start at, and its drawing probability.
+
+    Half of the probability is uniform over time, half proportional to the residual
+    energy in the scored part of the window, so that the few reversals where the gap
+    lives are seen often enough in a short training.
+    """
+    starts, score = [], []
+    for i, (_, y, m) in enumerate(series):
+        n_start = len(y) - n_win
+        if n_start <= 0:
+            continue
+        e = np.concatenate([[0.0], np.cumsum(np.sum(m * y**2, axis=1))])
+        a = np.arange(n_start)
+        starts += [(i, int(k)) for k in a]
+        score.append(e[a + n_win] - e[a + n_wash])
+    if not starts:
+        raise ValueError("every identification test is shorter than one training window")
+    score = np.concatenate(score)
+    prob = (1.0 - ENERGY_MIX) / len(score) + ENERGY_MIX * score / max(score.sum(), 1e-300)
+    prob /= prob.sum()
+    return starts, prob
+
+
+@dataclass
+class _TrainingWindows:
+    """The training tests on the ODE grid and how windows are drawn from them.
+
+    ``series`` holds per test the normalised features, the residual target (each channel
+    divided by its residual RMS) and a mask of the channels the test has, (samples, …).
+    """
+
+    series: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    starts: list[tuple[int, int]]  # (test index, first sample) of every possible window
+    prob: np.ndarray  # drawing probability of each start
+    n_win: int  # samples per window, wash-out included
+    n_wash: int  # leading samples integrated but not scored
+
+    def draw(self, rng: np.random.Generator,
+             batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A random batch: features (whole windows), target and mask (scored part only)."""
+        s_b, y_b, m_b = [], [], []
+        for k in rng.choice(len(self.starts), size=batch, p=self.prob):
+            i, a = self.starts[k]
+            s, y, m = self.series[i]
+            s_b.append(s[a:a + self.n_win])
+            y_b.append(y[a:a + self.n_win])
+            m_b.append(m[a:a + self.n_win])
+        s_t = torch.tensor(np.stack(s_b), dtype=torch.float32)
+        y_t = torch.tensor(np.stack(y_b)[:, self.n_wash:], dtype=torch.float32)
+        m_t = torch.tensor(np.stack(m_b)[:, self.n_wash:], dtype=torch.float32)
+        return s_t, y_t, m_t
+
+
 class NeuralResidual:
     """Base physics twin plus a latent neural ODE correction, trained on identification tests.
 
@@ -329,6 +385,17 @@ class NeuralResidual:
         return self
 
     def _train(self, train: list[TestResidual], rng: np.random.Generator) -> None:
+        """Normalise, draw windows, run the Adam steps, then calibrate the gains."""
+        self._fit_features(train)
+        self._fit_channel_scale(train)
+        windows = self._training_windows(train)
+        net = _LatentODE(len(self.features), len(self.channels), self.latent, self.hidden)
+        self._optimise(net, windows, rng)
+        self._net = net
+        self._calibrate(train)
+
+    def _fit_features(self, train: list[TestResidual]) -> None:
+        """Channels, scenarios, feature names and the features' normalisation (mean, std)."""
         self.channels = sorted({ch for t in train for ch in t.channels},
                                key=lambda c: (c != "steering_torque_nm", c))
         self.scenarios = sorted({t.scenario for t in train})
@@ -342,15 +409,17 @@ class NeuralResidual:
         self._mean = np.array([stacked[n].mean() for n in names] + [0.0] * len(self.scenarios))
         self._scale = np.array([stacked[n].std() for n in names] + [1.0] * len(self.scenarios))
 
-        # residual RMS per channel over the training tests: every channel weighs alike
+    def _fit_channel_scale(self, train: list[TestResidual]) -> None:
+        """Residual RMS per channel over the training tests: every channel weighs alike."""
         scale = []
         for ch in self.channels:
             r = np.concatenate([t.residual(ch) for t in train if ch in t.measured])
             scale.append(max(float(np.sqrt(np.mean(r**2))), 1e-12))
         self._channel_scale = np.array(scale)
 
-        # normalised data per test on the ODE grid; windows are drawn from these
-        data = []
+    def _training_windows(self, train: list[TestResidual]) -> _TrainingWindows:
+        """Normalised data per test on the ODE grid and the window-start distribution."""
+        series = []
         for t in train:
             grid, s = self._resampled(t)
             y = np.zeros((len(s), len(self.channels)))
@@ -359,46 +428,26 @@ class NeuralResidual:
                 if ch in t.measured:
                     y[:, j] = np.interp(grid, t.time_s, t.residual(ch)) / self._channel_scale[j]
                     m[:, j] = 1.0
-            data.append((s, y, m))
+            series.append((s, y, m))
         h = 1.0 / TARGET_RATE_HZ
         n_win = max(4, int(round(self.window_s / h)))
         n_wash = int(round(WASHOUT_FRACTION * n_win))
-        # Window starts: half of the probability uniform over time, half proportional to the
-        # residual energy in the scored part of the window, so that the few reversals where
-        # the gap lives are seen often enough in a short training.
-        starts, score = [], []
-        for i, (_, y, m) in enumerate(data):
-            n_start = len(y) - n_win
-            if n_start <= 0:
-                continue
-            e = np.concatenate([[0.0], np.cumsum(np.sum(m * y**2, axis=1))])
-            a = np.arange(n_start)
-            starts += [(i, int(k)) for k in a]
-            score.append(e[a + n_win] - e[a + n_wash])
-        if not starts:
-            raise ValueError("every identification test is shorter than one training window")
-        score = np.concatenate(score)
-        prob = (1.0 - ENERGY_MIX) / len(score) + ENERGY_MIX * score / max(score.sum(), 1e-300)
-        prob /= prob.sum()
+        starts, prob = _window_starts(series, n_win, n_wash)
+        return _TrainingWindows(series, starts, prob, n_win, n_wash)
 
-        net = _LatentODE(len(self.features), len(self.channels), self.latent, self.hidden)
+    def _optimise(self, net: _LatentODE, windows: _TrainingWindows,
+                  rng: np.random.Generator) -> None:
+        """``iterations`` Adam steps (cosine-annealed, gradient norm clipped to 1) on random
+        batches of windows, scoring the masked residual after each window's wash-out."""
         opt = torch.optim.Adam(net.parameters(), lr=self.learning_rate)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=self.iterations,
                                                            eta_min=0.1 * self.learning_rate)
         self.loss_history = []
         z0 = torch.zeros(self.batch, self.latent)
+        h = 1.0 / TARGET_RATE_HZ
         for _ in range(self.iterations):
-            s_b, y_b, m_b = [], [], []
-            for k in rng.choice(len(starts), size=self.batch, p=prob):
-                i, a = starts[k]
-                s, y, m = data[i]
-                s_b.append(s[a:a + n_win])
-                y_b.append(y[a:a + n_win])
-                m_b.append(m[a:a + n_win])
-            s_t = torch.tensor(np.stack(s_b), dtype=torch.float32)
-            y_t = torch.tensor(np.stack(y_b)[:, n_wash:], dtype=torch.float32)
-            m_t = torch.tensor(np.stack(m_b)[:, n_wash:], dtype=torch.float32)
-            out = net.outputs(s_t, h, z0, self.substeps)[:, n_wash:]
+            s_t, y_t, m_t = windows.draw(rng, self.batch)
+            out = net.outputs(s_t, h, z0, self.substeps)[:, windows.n_wash:]
             loss = (((out - y_t) ** 2) * m_t).sum() / m_t.sum().clamp_min(1.0)
             opt.zero_grad()
             loss.backward()
@@ -406,8 +455,6 @@ class NeuralResidual:
             opt.step()
             sched.step()
             self.loss_history.append(float(loss.detach()))
-        self._net = net
-        self._calibrate(train)
 
     def _calibrate(self, train: list[TestResidual]) -> None:
         """Shrink the correction where it does not pay off open loop on the training tests.
@@ -577,20 +624,20 @@ def explain(model: NeuralResidual, tests: list[TestResidual], library: LibraryFa
     base = {"state_dependence": _state_dependence(used, corr),
             "residual_explained": float(1.0 - np.sum((resid - corr) ** 2)
                                         / max(np.sum(resid**2), 1e-300))}
-    # The correction rings after reversals (a mesh mode the latent ODE reproduces); static
-    # library terms cannot ring. The same low-pass on both sides of the regression keeps the
-    # shelf / hysteresis shape the catalogue effects differ by and averages the ringing out.
-    # After the low-pass, ~100 Hz carries everything: fewer rows, same regression.
-    step = [max(1, int(round(1.0 / (REGRESSION_RATE_HZ * t.dt_s)))) for t in used]
-    y_reg = np.concatenate([exponential_filter(c, t.dt_s, smooth_s)[::k]
-                            for c, t, k in zip(corrections, used, step)])
-    theta, cands = _term_matrix(used, library, step, smooth_s)
+    return {**base, **_sparse_reading(used, corrections, library, threshold, smooth_s)}
+
+
+def _sparse_reading(used: list[TestResidual], corrections: list[np.ndarray],
+                    library: LibraryFactory, threshold: float, smooth_s: float) -> dict:
+    """``terms``, ``ranking``, ``nominal_share``, ``variance_explained`` and ``aliases`` of
+    ``explain``: the low-passed correction regressed (STLSQ) on the library's terms."""
+    y_reg, theta, cands = _regression_rows(used, corrections, library, smooth_s)
     std = theta.std(axis=0)
     xs = (theta - theta.mean(axis=0)) / np.where(std > 0, std, 1.0)
     kept, aliases = _prune_aliases(xs, std, [c.name for c in cands])
     y_std = float(np.std(y_reg))
     if y_std == 0.0 or not kept:
-        return {**base, "terms": [], "ranking": [], "nominal_share": 0.0,
+        return {"terms": [], "ranking": [], "nominal_share": 0.0,
                 "variance_explained": 0.0, "aliases": aliases}
     xs, std, cands = xs[:, kept], std[kept], [cands[j] for j in kept]
     ys = (y_reg - y_reg.mean()) / y_std
@@ -598,9 +645,26 @@ def explain(model: NeuralResidual, tests: list[TestResidual], library: LibraryFa
     order = np.argsort(-np.abs(beta), kind="stable")
     terms = [(cands[j].name, cands[j].key, float(beta[j] * y_std / std[j]))
              for j in order if beta[j] != 0.0]
-    return {**base, "terms": terms, **_key_shares(xs, beta, cands, order),
+    return {"terms": terms, **_key_shares(xs, beta, cands, order),
             "variance_explained": float(1.0 - np.sum((ys - xs @ beta) ** 2) / np.sum(ys**2)),
             "aliases": aliases}
+
+
+def _regression_rows(used: list[TestResidual], corrections: list[np.ndarray],
+                     library: LibraryFactory, smooth_s: float
+                     ) -> tuple[np.ndarray, np.ndarray, list[Candidate]]:
+    """The regression's target (low-passed correction), term matrix and candidates.
+
+    The correction rings after reversals (a mesh mode the latent ODE reproduces); static
+    library terms cannot ring. The same low-pass on both sides of the regression keeps the
+    shelf / hysteresis shape the catalogue effects differ by and averages the ringing out.
+    After the low-pass, ~100 Hz carries everything: fewer rows, same regression.
+    """
+    step = [max(1, int(round(1.0 / (REGRESSION_RATE_HZ * t.dt_s)))) for t in used]
+    y_reg = np.concatenate([exponential_filter(c, t.dt_s, smooth_s)[::k]
+                            for c, t, k in zip(corrections, used, step)])
+    theta, cands = _term_matrix(used, library, step, smooth_s)
+    return y_reg, theta, cands
 
 
 def _term_matrix(used: list[TestResidual], library: LibraryFactory, step: list[int],
@@ -704,16 +768,33 @@ def plot_learned(model: NeuralResidual, tests: Sequence[TestResidual], path,
     used = [t for t in tests if channel in t.measured]
     if not used:
         raise ValueError(f"no test carries channel '{channel}'")
-    ctrl = [t for t in used if t.role == "control"]
-    ident = sorted((t for t in used if t.role != "control"),
-                   key=lambda t: -float(np.std(t.residual(channel))))
-    shown = (ctrl + ident)[:n_tests]
-    unit, k = _unit(channel)
+    shown = _shown_tests(used, channel, n_tests)
     fig = plt.figure(figsize=(13, 3.0 * (len(shown) + 1.3)), layout="constrained")
     grid = fig.add_gridspec(len(shown) + 1, 3, height_ratios=[1.0] * len(shown) + [1.4])
     corrections = {t.id: c[channel] for t, c in zip(used, model.corrections(used))}
     for row, t in enumerate(shown):
         _residual_row(fig, grid, row, t, channel, corrections[t.id])
+    _dependence_row(fig, grid, used, shown, channel, corrections)
+    fig.suptitle(f"Physics + neural residual on {channel}: learned correction vs measured "
+                 f"residual (measured − base model)", fontsize=12)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _shown_tests(used: list[TestResidual], channel: str, n_tests: int) -> list[TestResidual]:
+    """The tests ``plot_learned`` shows over time: control tests first, then the
+    identification tests with the largest residual."""
+    ctrl = [t for t in used if t.role == "control"]
+    ident = sorted((t for t in used if t.role != "control"),
+                   key=lambda t: -float(np.std(t.residual(channel))))
+    return (ctrl + ident)[:n_tests]
+
+
+def _dependence_row(fig, grid, used: list[TestResidual], shown: list[TestResidual],
+                    channel: str, corrections: dict[str, np.ndarray]) -> None:
+    """Last row of ``plot_learned``: the correction of the shown tests against the signal
+    it depends on most (correlation ratio over all ``used`` tests), one colour per test."""
+    unit, k = _unit(channel)
     dep = _state_dependence(used, np.concatenate([corrections[t.id] for t in used]))
     top = next(iter(dep))
     s_unit, s_k = _unit(top)
@@ -730,10 +811,6 @@ def plot_learned(model: NeuralResidual, tests: Sequence[TestResidual], path,
                  f"(correlation ratio {dep[top]:.2f})", fontsize=10, loc="left")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
-    fig.suptitle(f"Physics + neural residual on {channel}: learned correction vs measured "
-                 f"residual (measured − base model)", fontsize=12)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _residual_row(fig, grid, row: int, t: TestResidual, channel: str,

@@ -40,7 +40,7 @@ import numpy as np
 import pysindy as ps
 from scipy.integrate import odeint
 
-from mbst.core.candidates import CandidateLibrary, LibraryFactory
+from mbst.core.candidates import Candidate, CandidateLibrary, LibraryFactory
 from mbst.core.filtering import exponential_filter
 from mbst.discovery.data import TestResidual
 
@@ -336,26 +336,13 @@ def residual_regression(tests: list[TestResidual], library: LibraryFactory,
         default) or ``"stlsq"`` (pysindy's STLSQ on unit-norm columns with
         threshold √min_share, wrong-sign terms pruned).
     """
-    signed = getattr(library, "signed_channel", None)
-    channel = channel or signed
-    ident = [t for t in tests if t.role == "identification" and channel in t.measured]
-    if not ident:
-        raise ValueError(f"no identification test carries channel '{channel}'")
-    if optimizer not in ("frols", "stlsq"):
-        raise ValueError(f"unknown optimizer '{optimizer}' (frols, stlsq)")
+    channel = channel or getattr(library, "signed_channel", None)
+    ident = _identification_tests(tests, channel, optimizer)
     lib = library(ident)
-    X, y = _pooled_design(ident, channel, lib, rate_hz)
-    good = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
-    cands = lib.candidates
-    # the physical signs are worked out for the library's signed channel only
-    signs = np.array([c.sign if channel == lib.signed_channel else 0 for c in cands])
-    # centring is the campaign-wide offset: one bias for all tests, never attributed
-    yc = y[good] - y[good].mean()
-    d = _Design(X[good] - X[good].mean(axis=0), yc, np.array([c.nuisance for c in cands]),
-                signs, float(yc @ yc))
+    d = _centred_design(ident, channel, lib, rate_hz)
     ids = [t.id for t in ident]
-    rms = float(np.sqrt(d.sst / max(len(yc), 1)))
-    empty = SparseEvidence(channel, [], 0.0, 0.0, [], {}, rms, len(yc), 0, ids, optimizer)
+    rms = float(np.sqrt(d.sst / max(len(d.yc), 1)))
+    empty = SparseEvidence(channel, [], 0.0, 0.0, [], {}, rms, len(d.yc), 0, ids, optimizer)
     if d.sst <= 0:
         return empty
     d.project()
@@ -363,21 +350,60 @@ def residual_regression(tests: list[TestResidual], library: LibraryFactory,
         empty.nuisance_variance_explained = d.nuisance_share
         return empty
     select = _forward_select if optimizer == "frols" else _stlsq_select
-    chosen, shares = select(d.Z, d.r0, d.sst, signs[d.eff_idx], min_share, max_terms)
+    chosen, shares = select(d.Z, d.r0, d.sst, d.signs[d.eff_idx], min_share, max_terms)
+    cands = lib.candidates
+    terms = _selected_terms(d, cands, chosen, shares)
+    return SparseEvidence(
+        channel=channel, terms=terms, variance_explained=float(sum(shares)),
+        nuisance_variance_explained=d.nuisance_share, ranking=_key_ranking(terms),
+        key_scores=d.key_scores([c.key for c in cands], min_share),
+        residual_rms=rms, n_samples=len(d.yc), n_candidates=int(d.Z.shape[1]),
+        test_ids=ids, optimizer=optimizer,
+    )
+
+
+def _identification_tests(tests: list[TestResidual], channel: str | None,
+                          optimizer: str) -> list[TestResidual]:
+    """The tests the regression reads (identification tests carrying ``channel``);
+    refuses a campaign without any and an unknown optimizer."""
+    ident = [t for t in tests if t.role == "identification" and channel in t.measured]
+    if not ident:
+        raise ValueError(f"no identification test carries channel '{channel}'")
+    if optimizer not in ("frols", "stlsq"):
+        raise ValueError(f"unknown optimizer '{optimizer}' (frols, stlsq)")
+    return ident
+
+
+def _centred_design(ident: list[TestResidual], channel: str, lib: CandidateLibrary,
+                    rate_hz: float) -> _Design:
+    """The pooled regression of ``channel``'s residual on the library, finite rows only,
+    centred, with each candidate's nuisance flag and physical sign (not yet projected)."""
+    X, y = _pooled_design(ident, channel, lib, rate_hz)
+    good = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+    cands = lib.candidates
+    # the physical signs are worked out for the library's signed channel only
+    signs = np.array([c.sign if channel == lib.signed_channel else 0 for c in cands])
+    # centring is the campaign-wide offset: one bias for all tests, never attributed
+    yc = y[good] - y[good].mean()
+    return _Design(X[good] - X[good].mean(axis=0), yc, np.array([c.nuisance for c in cands]),
+                   signs, float(yc @ yc))
+
+
+def _selected_terms(d: _Design, cands: list[Candidate], chosen: list[int],
+                    shares: list[float]) -> list[SparseTerm]:
+    """The selected columns of ``d.Z`` as catalogue terms, coefficients in the
+    candidates' own units, in the order they joined."""
     sel = [int(d.eff_idx[j]) for j in chosen]
-    terms = [SparseTerm(cands[i].name, cands[i].key, float(b), s)
-             for i, b, s in zip(sel, d.coefficients(sel), shares, strict=True)]
+    return [SparseTerm(cands[i].name, cands[i].key, float(b), s)
+            for i, b, s in zip(sel, d.coefficients(sel), shares, strict=True)]
+
+
+def _key_ranking(terms: list[SparseTerm]) -> list[tuple[str, float]]:
+    """Catalogue keys by the summed variance share of their selected terms, largest first."""
     by_key: dict[str, float] = {}
     for term in terms:
         by_key[term.key] = by_key.get(term.key, 0.0) + term.variance_share
-    return SparseEvidence(
-        channel=channel, terms=terms, variance_explained=float(sum(shares)),
-        nuisance_variance_explained=d.nuisance_share,
-        ranking=sorted(by_key.items(), key=lambda kv: (-kv[1], kv[0])),
-        key_scores=d.key_scores([c.key for c in cands], min_share),
-        residual_rms=rms, n_samples=len(yc), n_candidates=int(d.Z.shape[1]),
-        test_ids=ids, optimizer=optimizer,
-    )
+    return sorted(by_key.items(), key=lambda kv: (-kv[1], kv[0]))
 
 
 # --------------------------------------------------------------------------------------
