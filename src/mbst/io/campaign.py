@@ -345,6 +345,7 @@ def _load_yaml(yaml_path: Path) -> Any:
 
 
 def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
+    """Check a parsed ``campaign.yaml`` top to bottom and build the :class:`Campaign`."""
     if not isinstance(doc, dict):
         got = "an empty file" if doc is None else type(doc).__name__
         raise CampaignError(f"top level must be a mapping, got {got}", path=yaml_path)
@@ -356,58 +357,13 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
     def fail(message: str, test: str | None = None) -> CampaignError:
         return CampaignError(message, campaign=label, test=test, path=yaml_path)
 
-    if "format" not in doc:
-        raise fail(f"missing key 'format' (expected '{FORMAT}')")
-    if doc["format"] != FORMAT:
-        raise fail(f"format is {doc['format']!r}, expected '{FORMAT}'")
-    for key in ("name", "system", "tests"):
-        if key not in doc or doc[key] is None:
-            raise fail(f"missing key '{key}'")
-    if not _is_scalar(raw_name) or str(raw_name).strip() == "":
-        raise fail("'name' must be a non-empty string")
-    name = str(raw_name)
-
-    system = doc["system"]
-    systems = known_systems()
-    if not isinstance(system, str) or system not in systems:
-        raise fail(f"unknown system {system!r}; known systems: {', '.join(systems)}")
+    name = _campaign_name(doc, fail)
+    system = _campaign_system(doc, fail)
     family = get_system(system)
 
     known, priors = _parse_known(doc.get("known"), fail)
     _check_known_ranges(known, family, fail)
-
-    raw_tests = doc["tests"]
-    if not isinstance(raw_tests, list):
-        raise fail(f"'tests' must be a list, got {type(raw_tests).__name__}")
-    if not raw_tests:
-        raise fail("'tests' is empty; a campaign needs at least one test")
-
-    tests: list[TestSpec] = []
-    seen: set[str] = set()
-    for index, entry in enumerate(raw_tests):
-        spec = _parse_test(entry, index, family, fail)
-        # the id names the test's outputs (figures, a preprocessed copy): a file name
-        _check_writable_id(spec.id, name)
-        if spec.id in seen:
-            raise fail("duplicate test id", test=spec.id)
-        seen.add(spec.id)
-        file_path = yaml_path.parent / spec.file
-        if Path(spec.file).suffix.lower() not in DATA_EXTENSIONS:
-            raise CampaignError(
-                f"unsupported file extension {Path(spec.file).suffix!r}; "
-                f"use {' or '.join(DATA_EXTENSIONS)}",
-                campaign=name,
-                test=spec.id,
-                path=file_path,
-            )
-        if not file_path.is_file():
-            raise CampaignError(
-                f"data file not found (file: {spec.file})",
-                campaign=name,
-                test=spec.id,
-                path=file_path,
-            )
-        tests.append(spec)
+    tests = _parse_tests(doc["tests"], yaml_path.parent, family, name, fail)
 
     _check_controls_held_out(tests, yaml_path.parent, name)
     extra = {k: v for k, v in doc.items() if k not in _TOP_KEYS}
@@ -420,6 +376,73 @@ def _parse_campaign(doc: Any, yaml_path: Path) -> Campaign:
         extra=extra,
         priors=priors,
     )
+
+
+def _campaign_name(doc: dict, fail: Callable[..., CampaignError]) -> str:
+    """The campaign's name, after the ``format`` and the required top-level keys."""
+    if "format" not in doc:
+        raise fail(f"missing key 'format' (expected '{FORMAT}')")
+    if doc["format"] != FORMAT:
+        raise fail(f"format is {doc['format']!r}, expected '{FORMAT}'")
+    for key in ("name", "system", "tests"):
+        if key not in doc or doc[key] is None:
+            raise fail(f"missing key '{key}'")
+    raw_name = doc["name"]
+    if not _is_scalar(raw_name) or str(raw_name).strip() == "":
+        raise fail("'name' must be a non-empty string")
+    return str(raw_name)
+
+
+def _campaign_system(doc: dict, fail: Callable[..., CampaignError]) -> str:
+    """The ``system:`` key, which must name a registered system family."""
+    system = doc["system"]
+    systems = known_systems()
+    if not isinstance(system, str) or system not in systems:
+        raise fail(f"unknown system {system!r}; known systems: {', '.join(systems)}")
+    return system
+
+
+def _parse_tests(raw_tests: Any, root: Path, family: SystemFamily, campaign: str,
+                 fail: Callable[..., CampaignError]) -> list[TestSpec]:
+    """``tests:`` as specs in file order: ids unique and usable as file names, each data
+    file (relative to the campaign directory ``root``) of a known type and present."""
+    if not isinstance(raw_tests, list):
+        raise fail(f"'tests' must be a list, got {type(raw_tests).__name__}")
+    if not raw_tests:
+        raise fail("'tests' is empty; a campaign needs at least one test")
+
+    tests: list[TestSpec] = []
+    seen: set[str] = set()
+    for index, entry in enumerate(raw_tests):
+        spec = _parse_test(entry, index, family, fail)
+        # the id names the test's outputs (figures, a preprocessed copy): a file name
+        _check_writable_id(spec.id, campaign)
+        if spec.id in seen:
+            raise fail("duplicate test id", test=spec.id)
+        seen.add(spec.id)
+        _check_data_file(spec, root, campaign)
+        tests.append(spec)
+    return tests
+
+
+def _check_data_file(spec: TestSpec, root: Path, campaign: str) -> None:
+    """A test's data file has a supported extension and exists under ``root``."""
+    file_path = root / spec.file
+    if Path(spec.file).suffix.lower() not in DATA_EXTENSIONS:
+        raise CampaignError(
+            f"unsupported file extension {Path(spec.file).suffix!r}; "
+            f"use {' or '.join(DATA_EXTENSIONS)}",
+            campaign=campaign,
+            test=spec.id,
+            path=file_path,
+        )
+    if not file_path.is_file():
+        raise CampaignError(
+            f"data file not found (file: {spec.file})",
+            campaign=campaign,
+            test=spec.id,
+            path=file_path,
+        )
 
 
 # A magnitude no rig's channel reaches in SI units; loggers write 1e30, 9.9e37 (NI) or
@@ -990,6 +1013,21 @@ def data_warnings(campaign: Campaign, test_id: str) -> list[str]:
             + _spike_warnings(test_id, {c: df[c].to_numpy(dtype=float) for c in logged}))
 
 
+# the columns of the tests table in ``mbst check``; the numeric ones are right-aligned
+_SUMMARY_COLUMNS = (
+    "id",
+    "scenario",
+    "motor",
+    "role",
+    "input",
+    "duration_s",
+    "rate_hz",
+    "samples",
+    "channels",
+)
+_NUMERIC_COLUMNS = {"duration_s", "rate_hz", "samples"}
+
+
 def summarize_campaign(campaign: Campaign) -> str:
     """Human-readable overview for ``mbst check``.
 
@@ -1004,8 +1042,23 @@ def summarize_campaign(campaign: Campaign) -> str:
         sample rate = 1 / median dt, samples, known channels present), counts
         per scenario and per role, and warnings.
     """
-    family = campaign.family
-    channel_names = [ch.name for ch in family.channels]
+    lines = _summary_heading(campaign)
+    rows: list[list[str]] = []
+    notes: list[str] = []
+    for spec in campaign.tests:
+        df = campaign.frame(spec.id)
+        dt = campaign.sample_time_s(spec.id)
+        rows.append(_summary_row(campaign.family, spec, df, dt))
+        notes += _test_notes(campaign, spec, df, dt)
+    lines.append(f"tests ({len(campaign.tests)}):")
+    lines += _aligned_table(list(_SUMMARY_COLUMNS), rows)
+    lines += notes
+    lines += _summary_counts(campaign)
+    return "\n".join(lines)
+
+
+def _summary_heading(campaign: Campaign) -> list[str]:
+    """Name, system, path, the known values (priors with their sigma) and extra keys."""
     lines = [
         f"campaign: {campaign.name}",
         f"system:   {campaign.system}",
@@ -1021,69 +1074,72 @@ def summarize_campaign(campaign: Campaign) -> str:
         lines.append("known:    (none)")
     for key, value in campaign.extra.items():
         lines.append(f"{key}: {value}")
+    return lines
 
-    header = [
-        "id",
-        "scenario",
-        "motor",
-        "role",
-        "input",
-        "duration_s",
-        "rate_hz",
-        "samples",
-        "channels",
+
+def _summary_row(family: SystemFamily, spec: TestSpec, df: pd.DataFrame,
+                 dt: float) -> list[str]:
+    """One test's cells of the tests table, in the order of ``_SUMMARY_COLUMNS``."""
+    channel_names = [ch.name for ch in family.channels]
+    t = df[family.time_channel].to_numpy(dtype=float)
+    channels = [c for c in channel_names if c in df.columns and c != family.time_channel]
+    return [
+        spec.id,
+        spec.scenario,
+        spec.motor,
+        spec.role,
+        spec.input_kind or "?",
+        f"{t[-1] - t[0]:.3f}",
+        f"{1.0 / dt:.1f}",
+        str(len(df)),
+        ",".join(channels),
     ]
-    rows = []
-    extras = []
-    for spec in campaign.tests:
-        df = campaign.frame(spec.id)
-        t = df[family.time_channel].to_numpy(dtype=float)
-        dt = campaign.sample_time_s(spec.id)
-        channels = [c for c in channel_names if c in df.columns and c != family.time_channel]
-        rows.append(
-            [
-                spec.id,
-                spec.scenario,
-                spec.motor,
-                spec.role,
-                spec.input_kind or "?",
-                f"{t[-1] - t[0]:.3f}",
-                f"{1.0 / dt:.1f}",
-                str(len(df)),
-                ",".join(channels),
-            ]
-        )
-        other = [c for c in df.columns if c not in channel_names]
-        if other:
-            extras.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
-        extras += [f"WARNING: {w}" for w in data_warnings(campaign, spec.id)]
-        if spec.input_kind not in (None, *INPUT_KINDS):
-            extras.append(f"WARNING: test '{spec.id}': input kind '{spec.input_kind}' is none "
-                          f"of {', '.join(INPUT_KINDS)}; the profile is read as informative "
-                          "(the model is driven by the measured angle)")
-        still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
-        if still:
-            extras.append(f"WARNING: test '{spec.id}': its input {family.input_channel} "
-                          f"barely moves ({still}); a model's FIT on it measures the noise")
+
+
+def _test_notes(campaign: Campaign, spec: TestSpec, df: pd.DataFrame, dt: float) -> list[str]:
+    """Lines below the table for one test: extra columns kept, and warnings about its
+    data, its input kind and an input that barely moves."""
+    family = campaign.family
+    channel_names = [ch.name for ch in family.channels]
+    notes = []
+    other = [c for c in df.columns if c not in channel_names]
+    if other:
+        notes.append(f"  {spec.id}: extra columns kept: {', '.join(other)}")
+    notes += [f"WARNING: {w}" for w in data_warnings(campaign, spec.id)]
+    if spec.input_kind not in (None, *INPUT_KINDS):
+        notes.append(f"WARNING: test '{spec.id}': input kind '{spec.input_kind}' is none "
+                     f"of {', '.join(INPUT_KINDS)}; the profile is read as informative "
+                     "(the model is driven by the measured angle)")
+    still = _barely_moves(df[family.input_channel].to_numpy(dtype=float), dt)
+    if still:
+        notes.append(f"WARNING: test '{spec.id}': its input {family.input_channel} "
+                     f"barely moves ({still}); a model's FIT on it measures the noise")
+    return notes
+
+
+def _aligned_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """Header and rows as indented lines, columns padded to their widest cell (numeric
+    columns right-aligned), trailing blanks cut."""
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    numeric = {"duration_s", "rate_hz", "samples"}
 
     def fmt_row(cells: list[str]) -> str:
-        out = [c.rjust(w) if h in numeric else c.ljust(w) for c, w, h in zip(cells, widths, header)]
+        out = [c.rjust(w) if h in _NUMERIC_COLUMNS else c.ljust(w)
+               for c, w, h in zip(cells, widths, header)]
         return "  " + "  ".join(out).rstrip()
 
-    lines.append(f"tests ({len(campaign.tests)}):")
-    lines.append(fmt_row(header))
-    lines += [fmt_row(r) for r in rows]
-    lines += extras
+    return [fmt_row(header)] + [fmt_row(r) for r in rows]
 
+
+def _summary_counts(campaign: Campaign) -> list[str]:
+    """Tests per scenario (in the family's order) and per role, and a warning for a
+    role no test has."""
     by_scenario = Counter(s.scenario for s in campaign.tests)
-    ordered = [s for s in family.scenarios if s in by_scenario]
-    lines.append("per scenario: " + ", ".join(f"{s} {by_scenario[s]}" for s in ordered))
+    ordered = [s for s in campaign.family.scenarios if s in by_scenario]
+    lines = ["per scenario: " + ", ".join(f"{s} {by_scenario[s]}" for s in ordered)]
     by_role = Counter(s.role for s in campaign.tests)
     lines.append("per role: " + ", ".join(f"{r} {by_role.get(r, 0)}" for r in ROLES))
     if not by_role.get("identification"):
         lines.append("WARNING: no identification test; nothing can be fitted")
     if not by_role.get("control"):
         lines.append("WARNING: no control test; correlation of a fitted model cannot be measured")
-    return "\n".join(lines)
+    return lines

@@ -173,17 +173,8 @@ def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
     tests, seen, ids = [], {}, {}
     for path, default_role in _files(data_dir, name):
         frame = _read(path, name)
-        digest = hashlib.sha256(frame[["displacement_m", "friction_force_n"]]
-                                .to_numpy().tobytes()).hexdigest()
-        if digest in seen:
-            raise CampaignError(f"holds the same data as {seen[digest]}: one label is wrong; "
-                                "remove one of the two files", campaign=name, path=path)
-        seen[digest] = path
+        _check_distinct(frame, path, seen, ids, name)
         stem = path.stem
-        if test_id_of(stem) in ids:
-            raise CampaignError(f"has the test name of {ids[test_id_of(stem)]}: rename one "
-                                "of the two files", campaign=name, path=path)
-        ids[test_id_of(stem)] = path
         role = default_role if control is None else (
             "control" if fnmatch.fnmatch(stem, control) else "identification")
         spec = TestSpec(id=test_id_of(stem), file="", scenario="imposed_displacement",
@@ -194,23 +185,53 @@ def import_friction_damper(data_dir: str | Path, out_dir: str | Path,
         if pub is not None:
             spec.extra["published"] = pub
         tests.append((spec, frame))
-    if not any(s.role == "control" for s, _ in tests):
-        why = (f"no test matches --control {control!r}" if control is not None else
-               "no earthquake test to hold out and no --control given (e.g. --control "
-               "'1Hz*' holds out the 1 Hz sine tests)")
-        raise CampaignError(f"{why}: nothing held out", campaign=name, path=data_dir)
-    if not any(s.role == "identification" for s, _ in tests):
-        raise CampaignError("every test is a control: nothing left to identify",
-                            campaign=name, path=data_dir)
-    notes = ["SI units converted from in, kip and lb as the files declare them"]
-    mixed = _mixed_tensions([s for s, _ in tests])
-    if mixed:
-        log.warning("campaign %r from %s: %s", name, data_dir, mixed)
-        notes.append(mixed)
+    specs = [s for s, _ in tests]
+    _check_roles(specs, control, data_dir, name)
     return write_campaign(
         out_dir, name=name, system=SYSTEM_NAME, known={}, tests=tests,
         extra={"source": "Dataset-Friction-Damper-with-Backlash, Coble, Huggins, Cao, Ricles "
                          "& Downey (ARTS Lab, University of South Carolina), CC BY-SA 4.0",
-               "notes": "; ".join(notes)},
+               "notes": _campaign_notes(specs, data_dir, name)},
         overwrite=overwrite,
     )
+
+
+def _check_distinct(frame: pd.DataFrame, path: Path, seen: dict[str, Path],
+                    ids: dict[str, Path], campaign: str) -> None:
+    """A test file holds data and a test name no earlier file had (``seen``: data digest
+    -> file, ``ids``: test id -> file); records both for the files after it."""
+    digest = hashlib.sha256(frame[["displacement_m", "friction_force_n"]]
+                            .to_numpy().tobytes()).hexdigest()
+    if digest in seen:
+        raise CampaignError(f"holds the same data as {seen[digest]}: one label is wrong; "
+                            "remove one of the two files", campaign=campaign, path=path)
+    seen[digest] = path
+    test_id = test_id_of(path.stem)
+    if test_id in ids:
+        raise CampaignError(f"has the test name of {ids[test_id]}: rename one "
+                            "of the two files", campaign=campaign, path=path)
+    ids[test_id] = path
+
+
+def _check_roles(specs: list[TestSpec], control: str | None, data_dir: Path,
+                 campaign: str) -> None:
+    """At least one test is held out as a control and at least one is left to identify."""
+    if not any(s.role == "control" for s in specs):
+        why = (f"no test matches --control {control!r}" if control is not None else
+               "no earthquake test to hold out and no --control given (e.g. --control "
+               "'1Hz*' holds out the 1 Hz sine tests)")
+        raise CampaignError(f"{why}: nothing held out", campaign=campaign, path=data_dir)
+    if not any(s.role == "identification" for s in specs):
+        raise CampaignError("every test is a control: nothing left to identify",
+                            campaign=campaign, path=data_dir)
+
+
+def _campaign_notes(specs: list[TestSpec], data_dir: Path, campaign: str) -> str:
+    """The campaign's ``notes``: the unit conversion, and (also logged as a warning) the
+    band tensions when the sine tests mix several."""
+    notes = ["SI units converted from in, kip and lb as the files declare them"]
+    mixed = _mixed_tensions(specs)
+    if mixed:
+        log.warning("campaign %r from %s: %s", campaign, data_dir, mixed)
+        notes.append(mixed)
+    return "; ".join(notes)

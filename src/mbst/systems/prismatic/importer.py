@@ -68,34 +68,13 @@ def import_emps(data_dir: str | Path, out_dir: str | Path, overwrite: bool = Fal
     for test_id, (fname, role) in EMPS_FILES.items():
         path = data_dir / fname
         d = _load_mat(path, name)
-        n = len(d["t"])
-        for k in ("qg", "qm", "vir"):
-            if len(d[k]) != n:
-                raise CampaignError(f"variable '{k}' has {len(d[k])} samples, 't' has {n}",
-                                    campaign=name, path=path)
-            bad = np.nonzero(~np.isfinite(d[k]))[0]
-            if bad.size:
-                raise CampaignError(f"variable '{k}' is not finite", campaign=name,
-                                    path=path, row=int(bad[0]) + 1)
-        consts = {"drive_gain_n_per_v": float(d["gtau"][0]),
-                  "position_loop_gain_per_s": float(d["kp"][0]),
-                  "velocity_loop_gain_v_s_per_m": float(d["kv"][0]),
-                  "drive_command_limit_v": EMPS_COMMAND_LIMIT_V}
+        _check_signals(d, path, name)
+        consts = _drive_constants(d)
         if known is None:
             known = consts
-        elif any(abs(known[k] - v) > 1e-9 * abs(v) for k, v in consts.items()):
-            raise CampaignError("drive or controller constants differ from DATA_EMPS.mat",
-                                campaign=name, path=path)
-        gtau = consts["drive_gain_n_per_v"]
-        pulses = d.get("pulses_N", np.zeros(n))
-        frame = pd.DataFrame({
-            "time_s": d["t"],
-            "position_m": d["qm"],
-            "motor_force_n": gtau * d["vir"],
-            "position_reference_m": d["qg"],
-            "injected_force_n": gtau * pulses,
-            "drive_command_v": d["vir"],
-        })
+        else:
+            _check_same_drive(known, consts, path, name)
+        frame = _emps_frame(d, consts["drive_gain_n_per_v"])
         spec = TestSpec(id=test_id, file=f"tests/{test_id}.csv", scenario="closed_loop",
                         input={"kind": "recorded", "source": fname}, motor="drive", role=role)
         tests.append((spec, frame))
@@ -106,3 +85,48 @@ def import_emps(data_dir: str | Path, out_dir: str | Path, overwrite: bool = Fal
                         "for the closed-loop simulation"},
         overwrite=overwrite,
     )
+
+
+def _check_signals(d: dict[str, np.ndarray], path: Path, campaign: str) -> None:
+    """The recorded reference, position and drive command are as long as ``t`` and
+    finite (the first bad sample named by its 1-based row)."""
+    n = len(d["t"])
+    for k in ("qg", "qm", "vir"):
+        if len(d[k]) != n:
+            raise CampaignError(f"variable '{k}' has {len(d[k])} samples, 't' has {n}",
+                                campaign=campaign, path=path)
+        bad = np.nonzero(~np.isfinite(d[k]))[0]
+        if bad.size:
+            raise CampaignError(f"variable '{k}' is not finite", campaign=campaign,
+                                path=path, row=int(bad[0]) + 1)
+
+
+def _drive_constants(d: dict[str, np.ndarray]) -> dict[str, float]:
+    """The drive gain and loop gains a file records, with the command limit: the
+    campaign's ``known`` values."""
+    return {"drive_gain_n_per_v": float(d["gtau"][0]),
+            "position_loop_gain_per_s": float(d["kp"][0]),
+            "velocity_loop_gain_v_s_per_m": float(d["kv"][0]),
+            "drive_command_limit_v": EMPS_COMMAND_LIMIT_V}
+
+
+def _check_same_drive(known: dict[str, float], consts: dict[str, float], path: Path,
+                      campaign: str) -> None:
+    """A later file's drive and controller constants agree with those of DATA_EMPS.mat."""
+    if any(abs(known[k] - v) > 1e-9 * abs(v) for k, v in consts.items()):
+        raise CampaignError("drive or controller constants differ from DATA_EMPS.mat",
+                            campaign=campaign, path=path)
+
+
+def _emps_frame(d: dict[str, np.ndarray], gtau: float) -> pd.DataFrame:
+    """One test's channels: the motor force is ``gtau·vir`` (the pulses already inside),
+    the pulses alone (zero where the file has none) as ``injected_force_n``."""
+    pulses = d.get("pulses_N", np.zeros(len(d["t"])))
+    return pd.DataFrame({
+        "time_s": d["t"],
+        "position_m": d["qm"],
+        "motor_force_n": gtau * d["vir"],
+        "position_reference_m": d["qg"],
+        "injected_force_n": gtau * pulses,
+        "drive_command_v": d["vir"],
+    })
