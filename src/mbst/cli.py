@@ -12,6 +12,7 @@ import math
 import os
 import sys
 from pathlib import Path
+from typing import TypeAlias
 
 from mbst import __version__
 
@@ -305,25 +306,28 @@ def _add_realism_flags(p: argparse.ArgumentParser) -> None:
                    help="test amplitudes and frequencies drawn up to ± this fraction off")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="mbst",
-        description="Model-based system testing: identify a steering rig's physics from its "
-        "test logs, find what the model lacks, extend it and measure the gain.",
-    )
-    ap.add_argument("--version", action="version", version=f"mbst {__version__}")
-    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+# what ``ArgumentParser.add_subparsers`` returns: each sub-command is added to it
+_Subcommands: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
-    def add(name: str, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_)
-        p.add_argument("--quiet", "-q", action="store_true", help="print nothing but errors")
-        return p
 
-    p = add("check", "validate a campaign and print what it holds")
+def _add_command(sub: _Subcommands, name: str, help_: str) -> argparse.ArgumentParser:
+    """A sub-command with ``help_`` as its help and description, and its ``--quiet``."""
+    p = sub.add_parser(name, help=help_, description=help_)
+    p.add_argument("--quiet", "-q", action="store_true", help="print nothing but errors")
+    return p
+
+
+def _add_check(sub: _Subcommands) -> None:
+    """``mbst check``: validate a campaign."""
+    p = _add_command(sub, "check", "validate a campaign and print what it holds")
     p.add_argument("campaign", help="campaign directory (or its campaign.yaml)")
     p.set_defaults(func=_cmd_check)
 
-    p = add("bench", "write a campaign from the virtual test bench (truth.json beside it)")
+
+def _add_bench(sub: _Subcommands) -> None:
+    """``mbst bench``: a campaign from the virtual test bench, with its realism flags."""
+    p = _add_command(sub, "bench",
+                     "write a campaign from the virtual test bench (truth.json beside it)")
     p.add_argument("--out", required=True, help="output folder: DIR/campaign and DIR/truth.json")
     p.add_argument("--effect", action="append", metavar="EFFECT:COMPONENT[:param=value,...]",
                    help="hidden effect (repeatable); default: worm-gear backlash as in seed 000; "
@@ -347,15 +351,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_realism_flags(p)
     p.set_defaults(func=_cmd_bench)
 
-    p = add("preprocess", "write the filtered channels and the model input a fit compares "
-            "(a campaign to inspect), with a sensor-noise table and a raw-vs-filtered figure")
+
+def _add_preprocess(sub: _Subcommands) -> None:
+    """``mbst preprocess``: the filtered channels and model input, to inspect."""
+    p = _add_command(sub, "preprocess", "write the filtered channels and the model input a fit "
+                     "compares (a campaign to inspect), with a sensor-noise table and a "
+                     "raw-vs-filtered figure")
     p.add_argument("campaign")
     p.add_argument("--out", required=True,
                    help="output folder: campaign/, noise.csv, preprocess.md, figures/filter.png")
     p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
     p.set_defaults(func=_cmd_preprocess)
 
-    p = add("identify", "fit the physics model by cascaded identification; correlate on controls")
+
+def _add_identify(sub: _Subcommands) -> None:
+    """``mbst identify``: the cascaded identification of the physics model."""
+    p = _add_command(sub, "identify",
+                     "fit the physics model by cascaded identification; correlate on controls")
     p.add_argument("campaign")
     p.add_argument("--out", required=True)
     p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
@@ -368,8 +380,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "active damping from the column's viscous friction)")
     p.set_defaults(func=_cmd_identify)
 
-    p = add("discover", "find what the base model lacks, name it, extend the model and "
-            "compare model families on the control tests")
+
+def _add_discover(sub: _Subcommands) -> None:
+    """``mbst discover``: find, name and add what the base model lacks."""
+    p = _add_command(sub, "discover", "find what the base model lacks, name it, extend the "
+                     "model and compare model families on the control tests")
     p.add_argument("campaign")
     p.add_argument("--out", required=True)
     p.add_argument("--tau", type=float, default=0.005, help="exponential filter τ in s")
@@ -390,6 +405,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start from the base cascade `mbst identify` wrote (its "
                    "base_fit.json) instead of fitting it again; used only where it was made "
                    "from this campaign's data with these settings by this code")
+    _add_discover_skips(p)
+    p.set_defaults(func=_cmd_discover)
+
+
+def _add_discover_skips(p: argparse.ArgumentParser) -> None:
+    """``mbst discover``'s ``--no-…`` flags: the evidence rounds it can leave out."""
     p.add_argument("--no-sparse", action="store_true", help="skip the sparse regression")
     p.add_argument("--no-neural", action="store_true", help="skip the neural residual")
     p.add_argument("--no-stick-slip", action="store_true",
@@ -398,10 +419,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the inverse-model (equation-error) round of rigs that define one "
                         "(the prismatic axis: on EMPS it names the drive lag the output-error "
                         "rounds cannot tell from the real-data misfit)")
-    p.set_defaults(func=_cmd_discover)
 
-    p = add("plan", "plan a campaign before running it: sensors, cut-outs and inputs that "
-            "identify every unknown at the lowest cost (seed 000 'simulation for testing')")
+
+def _add_plan(sub: _Subcommands) -> None:
+    """``mbst plan``: plan a campaign, or the tests that resolve a discovery."""
+    p = _add_command(sub, "plan", "plan a campaign before running it: sensors, cut-outs and "
+                     "inputs that identify every unknown at the lowest cost (seed 000 "
+                     "'simulation for testing')")
     p.add_argument("plan", nargs="?", help="planning config (mbst-plan/1), e.g. "
                    "config/plan.yaml (not with --resolve)")
     p.add_argument("--out", required=True, help="output folder: campaign.yaml skeleton, "
@@ -410,6 +434,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--proof", action="store_true",
                    help="run the planned-vs-naive bench proof (default: the config's proof.enabled)")
     g.add_argument("--no-proof", action="store_true", help="skip the bench proof")
+    _add_resolve_flags(p)
+    p.set_defaults(func=_cmd_plan)
+
+
+def _add_resolve_flags(p: argparse.ArgumentParser) -> None:
+    """``mbst plan``'s group for the next tests when discovery could not decide."""
     r = p.add_argument_group("the next tests when discovery could not decide (docs/loop.md)")
     r.add_argument("--resolve", metavar="DISCOVERY", help="discovery.json (or its folder): "
                    "design the tests that decide what it left open — the pairs its resolution "
@@ -423,9 +453,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most test time to add, as a share of the campaign's identification "
                    "test time (default 0.5)")
     r.add_argument("--seed", type=int, default=0, help="noise of the predicted tests")
-    p.set_defaults(func=_cmd_plan)
 
-    p = add("import", "convert a public benchmark's files into a campaign")
+
+def _add_import(sub: _Subcommands) -> None:
+    """``mbst import``: a public benchmark's files as a campaign."""
+    p = _add_command(sub, "import", "convert a public benchmark's files into a campaign")
     p.add_argument("format", choices=["emps", "friction-damper"],
                    help="emps: the EMPS prismatic-axis benchmark; friction-damper: the banded "
                    "rotary friction damper data set")
@@ -438,11 +470,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing campaign")
     p.set_defaults(func=_cmd_import)
 
-    p = add("report", "collect per-campaign results into one table (results/summary.csv)")
+
+def _add_report(sub: _Subcommands) -> None:
+    """``mbst report``: per-campaign results in one table."""
+    p = _add_command(sub, "report",
+                     "collect per-campaign results into one table (results/summary.csv)")
     p.add_argument("kind", choices=["summary"], help="what to write")
     p.add_argument("inputs", nargs="+", help="per-campaign result folders (results/<campaign>)")
     p.add_argument("--out", required=True, help="CSV to write")
     p.set_defaults(func=_cmd_report)
+
+
+# the sub-commands in the order ``mbst --help`` lists them
+_SUBCOMMANDS = (_add_check, _add_bench, _add_preprocess, _add_identify, _add_discover,
+                _add_plan, _add_import, _add_report)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="mbst",
+        description="Model-based system testing: identify a steering rig's physics from its "
+        "test logs, find what the model lacks, extend it and measure the gain.",
+    )
+    ap.add_argument("--version", action="version", version=f"mbst {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in _SUBCOMMANDS:
+        add(sub)
     return ap
 
 
