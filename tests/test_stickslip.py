@@ -601,6 +601,10 @@ def test_the_stick_slip_figure_names_the_parts_the_answer_leaves_open():
     assert _stick_slip_verdict(SimpleNamespace(findings=[]), rec) == \
         "accepted stribeck_friction:motor"
     assert _stick_slip_verdict(SimpleNamespace(findings=[f]), {"accepted": None}) == "no finding"
+    declined = {"accepted": None, "rival_declined": [
+        {"key": "stribeck_friction:rack", "rival": "torque_ripple:motor"}]}
+    assert _stick_slip_verdict(SimpleNamespace(findings=[]), declined) == \
+        "stribeck_friction:rack declined for torque_ripple:motor"
 
 
 def test_a_stick_slip_name_on_the_edge_of_its_range_says_its_size_is_a_bound(monkeypatch):

@@ -242,7 +242,12 @@ def comparison_bars(result, path: Path) -> None:
 
 
 def _stick_slip_verdict(result, rec: dict) -> str:
-    """What the round named, with the parts its answer leaves open ("motor or rack")."""
+    """What the round named, with the parts its answer leaves open ("motor or rack"), or
+    the winner a rival declined (a ripple locked to a rotating part shakes the stage as a
+    stick-slip does: the envelope is high and yet nothing is named)."""
+    declined = rec.get("rival_declined") or []
+    if not rec["accepted"] and declined:
+        return f"{declined[0]['key']} declined for {declined[0]['rival']}"
     if not rec["accepted"]:
         return "no finding"
     effect, component = rec["accepted"].split(":")
