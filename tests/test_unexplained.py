@@ -342,6 +342,34 @@ def test_a_cogging_beside_a_backlash_is_not_named_stick_slip(tmp_path_factory):
         [f.evidence for f in result.findings]
 
 
+@pytest.mark.slow  # ~3 min
+def test_a_drift_no_winner_came_near_is_described(tmp_path_factory):
+    """Realistic rig 2507 (drawn rig, coloured noise, a torque lag): the Coulomb levels fall
+    30 % as the rig warms up, and nothing else. No catalogue candidate cleared the margin
+    (best 6.9 %), so no round set the drift beside a winner, and the generic library's
+    level per cut-out did not clear its chance: no finding at all. Screened at the extended
+    model in each stage, the drift removes 37 % of the free tie-rods: an unexplained drift,
+    levels falling from the first test to the last; no catalogue name."""
+    from mbst.discovery.pipeline import DiscoverSettings, discover
+    from mbst.io.campaign import read_campaign
+    from mbst.systems.eps.bench import BenchRecipe, compact_plan, run_bench
+    from mbst.systems.eps.realism import BenchRealism
+
+    out = tmp_path_factory.mktemp("rig2507")
+    recipe = BenchRecipe(effects=[], seed=2507, plan=compact_plan(),
+                         realism=BenchRealism.realistic(friction_drift=0.3))
+    result = discover(read_campaign(run_bench(out, recipe)),
+                      DiscoverSettings(sparse=False, neural=False, resolution=False))
+    assert not [f for f in result.findings if f.effect != "unexplained"], \
+        [f.evidence for f in result.findings]
+    drift = [f for f in result.findings if (f.signature or {}).get("kind") == "drift"]
+    assert drift and drift[0].signature["quantity"] == "time", \
+        [f.evidence for f in result.findings]
+    assert -0.3 < drift[0].signature["change"] < -0.05, drift[0].signature
+    means = result.comparison.groupby("model")["fit_percent"].mean()
+    assert means["physics+learned"] > means["base"], means
+
+
 def test_one_long_test_is_cut_into_stretches_for_its_held_out_folds():
     """EMPS has one identification run: contiguous stretches stand in for held-out tests."""
     one = [_test(0, 25, 0.3, 5, _lagged(0.010))]
@@ -376,6 +404,7 @@ def test_a_lag_read_downstream_is_refitted_as_a_sensors_lag_first(monkeypatch):
         calls, reads = [], {id(p0): first, id(p1): []}
         monkeypatch.setattr(unexplained_mod, "rival_findings", lambda state: (list(rivals), None))
         monkeypatch.setattr(unexplained_mod, "ripple_findings", lambda state, p: ([], None))
+        monkeypatch.setattr(unexplained_mod, "drift_findings", lambda state, p: ([], None))
         monkeypatch.setattr(unexplained_mod, "_signatures",
                             lambda state, p, keep=True: reads[id(p)])
         monkeypatch.setattr(unexplained_mod, "lag_scores", lambda state, p: [("scored at", p)])
@@ -434,6 +463,7 @@ def test_a_lag_no_stage_clears_is_said_where_the_cascade_takes_the_reading(monke
         reads = {id(p0): [torque, ahead], **reads}
         monkeypatch.setattr(unexplained_mod, "rival_findings", lambda state: ([], None))
         monkeypatch.setattr(unexplained_mod, "ripple_findings", lambda state, p: ([], None))
+        monkeypatch.setattr(unexplained_mod, "drift_findings", lambda state, p: ([], None))
         monkeypatch.setattr(unexplained_mod, "_signatures",
                             lambda state, p, keep=True: reads[id(p)])
         monkeypatch.setattr(unexplained_mod, "lag_scores",
@@ -498,6 +528,7 @@ def test_structure_left_beside_stated_values_that_matched_a_winner_says_to_check
     ripple = _describe(_campaign(lambda t, clean, motor: 0.1 * np.sin(18 * motor)))
     monkeypatch.setattr(unexplained_mod, "rival_findings", lambda state: ([], None))
     monkeypatch.setattr(unexplained_mod, "ripple_findings", lambda state, p: ([], None))
+    monkeypatch.setattr(unexplained_mod, "drift_findings", lambda state, p: ([], None))
     monkeypatch.setattr(unexplained_mod, "_signatures", lambda state, p, keep=True: [ripple])
     state = SimpleNamespace(p=np.zeros(2), findings=[], signatures=None, rival_physics=None,
                             rounds=rounds, model=SimpleNamespace(param_specs=[]),

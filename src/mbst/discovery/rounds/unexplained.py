@@ -40,6 +40,7 @@ from mbst.discovery.rivals import STATED
 from mbst.discovery.rounds.ripple import LOCK_P_VALUE, fast_part, ripple_findings
 from mbst.discovery.rounds.rival_findings import (
     cascade_lag_finding,
+    drift_findings,
     lag_findings,
     lag_scores,
     lags_through_cascade,
@@ -125,14 +126,19 @@ def unexplained_round(state: DiscoveryState) -> None:
 
 
 def _describe(state: DiscoveryState) -> None:
-    """A reality a round declined its winner for (``rival_findings``), a ripple locked to a
+    """A reality a round declined its winner for (``rival_findings``), a drift of the
+    friction levels no winner came near (``drift_findings``), a ripple locked to a
     rotating part (``ripple_findings``), then each channel's signature of what is left
     after them — after a sensor's lag too where one reads as a lag (``_read_lag``); one
     ``unexplained`` finding for the structured ones."""
     state.measure_floors("unexplained round")  # at the extended model
     found_rivals, physics = rival_findings(state)
+    state.findings += found_rivals
+    drifts, with_drift = drift_findings(state, state.p if physics is None else physics)
+    found_rivals += drifts
+    physics = physics if with_drift is None else with_drift
     ripples, with_ripple = ripple_findings(state, state.p if physics is None else physics)
-    state.findings += found_rivals + ripples
+    state.findings += drifts + ripples
     physics = physics if with_ripple is None else with_ripple
     state.rival_physics = physics
     p = state.p if physics is None else physics
