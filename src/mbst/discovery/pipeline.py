@@ -245,22 +245,9 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: NeuralJo
               t_start: float) -> DiscoveryResult:
     """Evidence in, findings named, model families compared on the held-out controls."""
     settings, model, timings = state.settings, state.model, state.timings
-    sparse_ev = neural_ev = neural_model = None
-    if settings.wants(model, "sparse"):
-        t0 = time.perf_counter()
-        sparse_ev = sparse_evidence(state.residuals, model.candidate_library)
-        timings["sparse_s"] = time.perf_counter() - t0
-    if neural_job is not None:
-        t0 = time.perf_counter()
-        neural_model, neural_ev = neural_job.result()
-        timings["neural_s"] = neural_ev.get("train_seconds") or 0.0
-        timings["neural_wait_s"] = time.perf_counter() - t0
+    sparse_ev, neural_ev, neural_model = _evidence(state, neural_job)
     findings = _named(state, sparse_ev, neural_ev)
-    try:
-        judge_catalogue_names(findings, state)
-    except Exception as exc:  # a check on the names must never sink them
-        log.warning("the unexplained round's check of the names failed: %s", exc)
-        state.failures.append(f"unexplained round (names check): {type(exc).__name__}: {exc}")
+    _judge_names(findings, state)
     # the held-out control tests measure the gain; they decided nothing above
     t0 = time.perf_counter()
     places = campaign_places(state)
@@ -272,16 +259,7 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: NeuralJo
     _learned_gain(findings, cmp.table)
     base = replace(state.base, correlation=cmp.base_correlation,
                    twins={**state.base.twins, **cmp.twins["base"]})
-    cost_base, n_eff = state.base_cost, state.base_n_eff
-    k_added = sum(len(model.effects[k].free) for k in state.accepted)
-    gain = {
-        "control_fit_percent_mean": mean_gain(cmp.table),
-        "aic_delta": float(n_eff * math.log(state.cost / cost_base) + 2 * k_added)
-        if state.accepted and cost_base > 0 else 0.0,
-        "identification_cost_base": cost_base,
-        "identification_cost_extended": state.cost,
-        "effective_samples": n_eff,
-    }
+    gain = _gain(state, cmp.table)
     _stick_slip_held_out(gain, findings, state, cmp.twins)
     failures = [f"{name} evidence: {ev['error']}" for name, ev in
                 (("sparse-regression", sparse_ev), ("neural-residual", neural_ev))
@@ -301,6 +279,47 @@ def _conclude(state: DiscoveryState, locations: list[dict], neural_job: NeuralJo
                 "stage_free": state.model_free_by_stage, "compensating": state.compensating(),
                 "tau_s": settings.identify.tau_s, "decimate": settings.identify.decimate},
     )
+
+
+def _evidence(state: DiscoveryState, neural_job: NeuralJob | None
+              ) -> tuple[dict | None, dict | None, object]:
+    """The sparse regression's and the neural residual's evidence, and the trained network
+    (``None`` where a method was not run); their times go to ``state.timings``."""
+    settings, model, timings = state.settings, state.model, state.timings
+    sparse_ev = neural_ev = neural_model = None
+    if settings.wants(model, "sparse"):
+        t0 = time.perf_counter()
+        sparse_ev = sparse_evidence(state.residuals, model.candidate_library)
+        timings["sparse_s"] = time.perf_counter() - t0
+    if neural_job is not None:
+        t0 = time.perf_counter()
+        neural_model, neural_ev = neural_job.result()
+        timings["neural_s"] = neural_ev.get("train_seconds") or 0.0
+        timings["neural_wait_s"] = time.perf_counter() - t0
+    return sparse_ev, neural_ev, neural_model
+
+
+def _judge_names(findings: list[Finding], state: DiscoveryState) -> None:
+    """The unexplained round's check of the catalogue names; a failure is recorded."""
+    try:
+        judge_catalogue_names(findings, state)
+    except Exception as exc:  # a check on the names must never sink them
+        log.warning("the unexplained round's check of the names failed: %s", exc)
+        state.failures.append(f"unexplained round (names check): {type(exc).__name__}: {exc}")
+
+
+def _gain(state: DiscoveryState, table: pd.DataFrame) -> dict:
+    """The extension's gain: control FIT, and ΔAIC on the identification tests."""
+    cost_base, n_eff = state.base_cost, state.base_n_eff
+    k_added = sum(len(state.model.effects[k].free) for k in state.accepted)
+    return {
+        "control_fit_percent_mean": mean_gain(table),
+        "aic_delta": float(n_eff * math.log(state.cost / cost_base) + 2 * k_added)
+        if state.accepted and cost_base > 0 else 0.0,
+        "identification_cost_base": cost_base,
+        "identification_cost_extended": state.cost,
+        "effective_samples": n_eff,
+    }
 
 
 def _stick_slip_held_out(gain: dict, findings: list[Finding], state: DiscoveryState,

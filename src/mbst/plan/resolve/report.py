@@ -110,8 +110,8 @@ def _fmt_size(size: dict) -> str:
     return ", ".join(f"{k} {v:.4g}" for k, v in size.items())
 
 
-def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) -> str:
-    rec = resolve_record(res, "")
+def _questions_section(res: ResolveResult, questions: list[dict]) -> list[str]:
+    """The page's title, what its questions mean, and their table before and after."""
     lines = [f"# Next tests for '{res.campaign.name}': what discovery could not decide", "",
              "A size question is one catalogue pair at one size: would discovery name it if "
              "the rig had it? Predicted share of its stage's cost and ΔAIC against "
@@ -126,43 +126,63 @@ def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) ->
              f"{SAFETY}× the margins. Method: `src/mbst/plan/resolve/design.py`.", "",
              "| pair | size | why asked | share before | ΔAIC before | share after | "
              "ΔAIC after | ΔAIC needed | decided after |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in rec["questions"]:
+    for r in questions:
         pair = _pair(r)
         lines.append(f"| {pair} | {_fmt_size(r['size'])} | "
                      f"{r['reason']} | {100 * r['share_before']:.1f} % | "
                      f"{r['aic_delta_before']:.1f} | {100 * r['share_after']:.1f} % | "
                      f"{r['aic_delta_after']:.1f} | −{r['aic_drop_needed']:.1f} | "
                      f"{'yes' if r['resolved_after'] else '**no**'} |")
+    return lines
+
+
+def _added_tests_section(rec: dict) -> list[str]:
+    """The tests added: their test time against the campaign's, and their table."""
     b = rec["budget"]
-    lines += ["", f"Tests added: {len(rec['added_tests'])}, {b['added_test_time_s']:.0f} s of "
-              f"test time ({100 * b['added_test_time_s'] / max(b['campaign_test_time_s'], 1e-9):.0f}"
-              f" % of the campaign's {b['campaign_test_time_s']:.0f} s; allowed "
-              f"{b['test_time_s']:.0f} s). They stay on the campaign's cut-outs, sensors and "
-              "amplitude and rate limits; the one sensor change offered is a finer angle encoder "
-              "(`sensor_noise_rms` in the test's entry). `campaign.yaml` is the campaign with "
-              "them appended.", "",
-              "| test | cut-out | input | sensor change | duration |", "|---|---|---|---|---|"]
+    lines = ["", f"Tests added: {len(rec['added_tests'])}, {b['added_test_time_s']:.0f} s of "
+             f"test time ({100 * b['added_test_time_s'] / max(b['campaign_test_time_s'], 1e-9):.0f}"
+             f" % of the campaign's {b['campaign_test_time_s']:.0f} s; allowed "
+             f"{b['test_time_s']:.0f} s). They stay on the campaign's cut-outs, sensors and "
+             "amplitude and rate limits; the one sensor change offered is a finer angle encoder "
+             "(`sensor_noise_rms` in the test's entry). `campaign.yaml` is the campaign with "
+             "them appended.", "",
+             "| test | cut-out | input | sensor change | duration |", "|---|---|---|---|---|"]
     for t in rec["added_tests"]:
         inp = yaml.safe_dump(t["input"], default_flow_style=True).strip()
         lines.append(f"| {t['id']} | {t['scenario']} | `{inp}` | {t['sensor_change'] or '—'} "
                      f"| {t['duration_s']:.1f} s |")
-    undecided = [r for r in rec["questions"] if not r["resolved_after"]]
-    if undecided:
-        lines += ["", "Not decided within the budget (`candidates.csv`: what each candidate "
-                  "test alone would give):", ""]
-        for r in undecided:
-            t = r["test_time_needed_s"]
-            lines.append(f"- {_pair(r)}: " + (
-                f"decided after {t:.0f} s of added tests (the same greedy choice, "
-                "past the budget)" if t is not None else
-                f"not within {NEEDED_UP_TO:g}× the campaign's test time: " + (
-                    "the rival reading follows the structure in every candidate as well (the "
-                    "tests move the two quantities together), so a cut-out or an input this "
-                    "step does not offer would be needed" if r["effect"] == "unexplained" else
-                    "a refit of the stage's parameters takes over most of its signal in every "
-                    "candidate, so a cut-out, an input beyond the campaign's rate or "
-                    "amplitude, or a sensor this step does not offer would be needed — or the "
-                    "effect is below what this rig can show")))
+    return lines
+
+
+def _undecided_section(questions: list[dict]) -> list[str]:
+    """The questions the budget leaves open: the test time each would need, or why none."""
+    undecided = [r for r in questions if not r["resolved_after"]]
+    if not undecided:
+        return []
+    lines = ["", "Not decided within the budget (`candidates.csv`: what each candidate "
+             "test alone would give):", ""]
+    for r in undecided:
+        t = r["test_time_needed_s"]
+        lines.append(f"- {_pair(r)}: " + (
+            f"decided after {t:.0f} s of added tests (the same greedy choice, "
+            "past the budget)" if t is not None else
+            f"not within {NEEDED_UP_TO:g}× the campaign's test time: " + (
+                "the rival reading follows the structure in every candidate as well (the "
+                "tests move the two quantities together), so a cut-out or an input this "
+                "step does not offer would be needed" if r["effect"] == "unexplained" else
+                "a refit of the stage's parameters takes over most of its signal in every "
+                "candidate, so a cut-out, an input beyond the campaign's rate or "
+                "amplitude, or a sensor this step does not offer would be needed — or the "
+                "effect is below what this rig can show")))
+    return lines
+
+
+def resolve_page(res: ResolveResult, figures: list[str], failures: list[str]) -> str:
+    """``resolve.md``: the questions, the tests added, what stays open, notes and figures."""
+    rec = resolve_record(res, "")
+    lines = _questions_section(res, rec["questions"])
+    lines += _added_tests_section(rec)
+    lines += _undecided_section(rec["questions"])
     for n in res.notes:
         lines += ["", f"Note: {n}"]
     if not res.questions:

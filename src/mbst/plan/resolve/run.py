@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from mbst.core.family import get_system
+from mbst.core.model import ModelDefinition
 from mbst.identify.fitting import PreparedTest, channel_scales, prepare_test
 from mbst.identify.replicate import raw_noise
 from mbst.io.campaign import Campaign, read_campaign
@@ -124,6 +125,53 @@ def _campaign(record: dict, path: Path, campaign_dir: str | Path | None) -> Camp
     return read_campaign(where)
 
 
+def _another_family(campaign: Campaign, record: dict, margins: Margins, t0: float
+                    ) -> ResolveResult:
+    """A campaign of a family the designer does not know: a note, no test designed."""
+    # a workflow may list every family's campaigns: say so, do not stop the run
+    note = (f"system '{campaign.system}': the test designer knows the {SYSTEM_NAME} "
+            "rig's cut-outs, inputs and sensors only; no test designed")
+    return ResolveResult(campaign, record, [], [], [], {}, margins, 0.0, 0.0,
+                         notes=[note], wall_s=time.perf_counter() - t0)
+
+
+def _readings(record: dict, campaign: Campaign, ids: list[PreparedTest], p: np.ndarray
+              ) -> tuple[list[Question], list[str]]:
+    """``signature_questions``, a failure there reported as a note."""
+    try:
+        readings, notes = signature_questions(record, campaign, ids, p)
+    except Exception as exc:  # the catalogue's questions never hang on the readings'
+        return [], [f"the unexplained finding's readings were not asked: "
+                    f"{type(exc).__name__}: {exc}"]
+    return readings, notes
+
+
+def _logged_blocks(ctx: Context, model: ModelDefinition, ids: list[PreparedTest],
+                   stages: set[str]) -> dict[str, list[str]]:
+    """The campaign's own tests of each stage reduced into ``ctx.blocks``; their ids."""
+    logged: dict[str, list[str]] = {}
+    for stage in sorted(stages):
+        for pt in model.stage_tests(stage, ids):
+            dur = float(pt.time_s[-1] - pt.time_s[0])
+            ctx.blocks[f"{stage}/{pt.id}"] = test_blocks(ctx, pt, stage, dur)
+            logged.setdefault(stage, []).append(f"{stage}/{pt.id}")
+    return logged
+
+
+def _design(ctx: Context, logged: dict[str, list[str]], cands: list[Candidate],
+            campaign_time: float, budget: float
+            ) -> tuple[list[Step], dict[str, tuple[float, float]], dict[str, float | None]]:
+    """The tests added within ``budget``, the scores before them, and per question the
+    test time it needs."""
+    # first how much test time each question needs; then the budget goes to the questions
+    # it can decide (test time spent on one it cannot decide is wasted rig time)
+    longer, _ = greedy(ctx, logged, [c.id for c in cands], NEEDED_UP_TO * campaign_time)
+    needed = time_needed(ctx, longer)
+    focus = {k for k, t in needed.items() if t is not None and t <= budget}
+    steps, before = greedy(ctx, logged, [c.id for c in cands], budget, focus)
+    return steps, before, needed
+
+
 def resolve(discovery: str | Path, targets: list[str] | None = None,
             campaign_dir: str | Path | None = None, budget_share: float = 0.5, seed: int = 0,
             progress: bool = False) -> ResolveResult:
@@ -135,20 +183,12 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     acc = record["acceptance"]
     margins = Margins(acc["min_relative_gain"], acc["min_aic_drop"], len(model.catalogue))
     if campaign.system != SYSTEM_NAME:
-        # a workflow may list every family's campaigns: say so, do not stop the run
-        note = (f"system '{campaign.system}': the test designer knows the {SYSTEM_NAME} "
-                "rig's cut-outs, inputs and sensors only; no test designed")
-        return ResolveResult(campaign, record, [], [], [], {}, margins, 0.0, 0.0,
-                             notes=[note], wall_s=time.perf_counter() - t0)
+        return _another_family(campaign, record, margins, t0)
     st = record["stages"]
     p = model.vector_from({k: v for k, v in record["vector"].items() if k in model.param_index})
     ids = [prepare_test(campaign, s, st["tau_s"]) for s in campaign.identification_tests()]
     questions, notes = open_questions(record, model, targets or [])
-    try:
-        readings, read_notes = signature_questions(record, campaign, ids, p)
-    except Exception as exc:  # the catalogue's questions never hang on the readings'
-        readings, read_notes = [], [f"the unexplained finding's readings were not asked: "
-                                    f"{type(exc).__name__}: {exc}"]
+    readings, read_notes = _readings(record, campaign, ids, p)
     questions, notes = questions + readings, notes + read_notes
     ctx = Context(p, channel_scales(ids), st["stage_free"], st["compensating"], st["decimate"],
                   questions, margins)
@@ -156,12 +196,7 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
                                  refit_rival(ctx, q, model.stage_tests(q.stage, ids))
                                  for q in questions]
     stages = {q.stage for q in questions}
-    logged: dict[str, list[str]] = {}
-    for stage in sorted(stages):
-        for pt in model.stage_tests(stage, ids):
-            dur = float(pt.time_s[-1] - pt.time_s[0])
-            ctx.blocks[f"{stage}/{pt.id}"] = test_blocks(ctx, pt, stage, dur)
-            logged.setdefault(stage, []).append(f"{stage}/{pt.id}")
+    logged = _logged_blocks(ctx, model, ids, stages)
     cands = candidate_tests(ids, stages)
     channel = get_system(model.name).input_channel
     noise = raw_noise({pt.id: campaign.frame(pt.id) for pt in ids}, ids, channel)
@@ -176,12 +211,7 @@ def resolve(discovery: str | Path, targets: list[str] | None = None,
     calibrate_rivals(ctx, logged)
     campaign_time = sum(float(pt.time_s[-1] - pt.time_s[0]) for pt in ids)
     budget = budget_share * campaign_time
-    # first how much test time each question needs; then the budget goes to the questions
-    # it can decide (test time spent on one it cannot decide is wasted rig time)
-    longer, _ = greedy(ctx, logged, [c.id for c in cands], NEEDED_UP_TO * campaign_time)
-    needed = time_needed(ctx, longer)
-    focus = {k for k, t in needed.items() if t is not None and t <= budget}
-    steps, before = greedy(ctx, logged, [c.id for c in cands], budget, focus)
+    steps, before, needed = _design(ctx, logged, cands, campaign_time, budget)
     return ResolveResult(campaign, record, questions, cands, steps, before, margins, budget,
                          campaign_time, predicted=predicted, context=ctx, input_channel=channel,
                          noise=noise, logged=logged, needed=needed, notes=notes,

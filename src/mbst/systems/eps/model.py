@@ -458,6 +458,17 @@ def _pre_identify_assist(campaign: Campaign, tests: list[PreparedTest], p: np.nd
     family = "hps" if p[PARAM_INDEX["assist.family"]] == 1.0 else "eps"
     passive = [pt for pt in tests if pt.spec.motor != "assist"]
     powered = [pt for pt in tests if pt.spec.motor == "assist"]
+    out["assist_friction_bounds"] = _assist_friction_bounds(campaign, passive, powered)
+    curves = _assist_curve_starts(powered, p, family, torque_offset_nm, out["values"])
+    if curves:
+        out["assist_curve_start"] = curves
+    # with the motor current logged, the measured points give the curve itself
+    _boost_curve_start(powered, p, family, out)
+
+
+def _assist_friction_bounds(campaign: Campaign, passive: list[PreparedTest],
+                            powered: list[PreparedTest]) -> dict:
+    """Per cut-out, the slowest loops' half-widths: engine on and off."""
     # hysteresis half-width with the engine off (upper) and on (lower bound of the friction)
     bounds = {}
     for scen in sorted({pt.scenario for pt in powered}):
@@ -471,7 +482,13 @@ def _pre_identify_assist(campaign: Campaign, tests: list[PreparedTest], p: np.nd
         if slow_off is not None:
             rec.update(engine_off_test=slow_off.id, half_width_off_nm=_loop_half_width(slow_off))
         bounds[scen] = rec
-    out["assist_friction_bounds"] = bounds
+    return bounds
+
+
+def _assist_curve_starts(powered: list[PreparedTest], p: np.ndarray, family: str,
+                         torque_offset_nm: float, values: dict) -> dict:
+    """Per assist mode, a curve through the quasi-static powered tests' points; its
+    coefficients go to ``values``, the record of each fit is returned."""
     curves = {}
     for mode in sorted({pt.spec.assist_mode or "default" for pt in powered}):
         ons = [pt for pt in powered if (pt.spec.assist_mode or "default") == mode
@@ -490,11 +507,15 @@ def _pre_identify_assist(campaign: Campaign, tests: list[PreparedTest], p: np.nd
         c = fit_characteristic(t_tb, a, family)
         for q, v in c.items():
             name = (f"assist.{q}" if mode == "default" else eps_assist.mode_param(mode, q))
-            out["values"][name] = v
+            values[name] = v
         curves[mode] = {"points": int(len(a)), "sources": sources, **c}
-    if curves:
-        out["assist_curve_start"] = curves
-    # with the motor current logged, the measured points give the curve itself
+    return curves
+
+
+def _boost_curve_start(powered: list[PreparedTest], p: np.ndarray, family: str,
+                       out: dict) -> None:
+    """The assist curve and active damping regressed on the motor current, from the
+    starts in ``out``; held by the cascade where the regression converged."""
     start = p.copy()
     index = powered[0].model.param_index if powered[0].model is not None else PARAM_INDEX
     for k, v in out["values"].items():

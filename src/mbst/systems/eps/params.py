@@ -118,16 +118,21 @@ COGGING_COS = "motor.cogging_cos_torque_nm"
 COGGING_ORDER = "motor.cogging_periods_per_rev"
 
 
-def _build_specs() -> list[ParamSpec]:
-    s: list[ParamSpec] = [
-        # known a priori (campaign.yaml: known)
+def _known_specs() -> list[ParamSpec]:
+    """What the campaign knows a priori (campaign.yaml: known)."""
+    return [
         ParamSpec("pinion_radius_m", "m", 7.5e-3, 5e-3, 1e-2, "known", "rack_pinion"),
         ParamSpec("worm_gear_ratio", "-", 16.5, 10.0, 25.0, "known", "worm_gear"),
         ParamSpec("column_inertia_kgm2", "kg·m²", 2.1e-3, 5e-4, 1e-2, "known", "steering_column"),
         ParamSpec("motor_inertia_kgm2", "kg·m²", 4.5e-5, 1e-5, 2e-4, "known", "motor"),
         ParamSpec("wheel_mass_kg", "kg", 80.0, 20.0, 200.0, "known", "tires"),
         ParamSpec("motor_torque_constant_nm_per_a", "N·m/A", 0.06, 0.01, 0.5, "known", "motor"),
-        # nominal stiffness and damping
+    ]
+
+
+def _stiffness_damping_specs() -> list[ParamSpec]:
+    """The nominal model's stiffness and damping (the tires' bearing friction with them)."""
+    return [
         ParamSpec("torsion_bar.stiffness_nm_per_rad", "N·m/rad", 80.0, 10.0, 400.0, "base",
                   "torsion_bar", True),
         ParamSpec("worm_gear.stiffness_nm_per_rad", "N·m/rad", 1.2e4, 1e3, 1e5, "base",
@@ -139,10 +144,11 @@ def _build_specs() -> list[ParamSpec]:
         ParamSpec("tires.bearing_coulomb_n", "N", 60.0, 0.0, 2000.0, "base", "tires"),
         ParamSpec("tires.bearing_viscous_ns_per_m", "N·s/m", 300.0, 0.0, 1e4, "base", "tires"),
     ]
-    for elem in FRICTION_ELEMENTS:
-        s += _friction_block(elem)
-    s += [
-        # effects outside the friction blocks
+
+
+def _effect_specs() -> list[ParamSpec]:
+    """Catalogue effects outside the friction blocks, with the rack-pinion mesh they need."""
+    return [
         ParamSpec("worm_gear.backlash.width_rad", "rad", 0.0, 0.0, 0.1, "effect", "worm_gear"),
         ParamSpec("rack_pinion.backlash.width_rad", "rad", 0.0, 0.0, 0.1, "effect", "rack_pinion"),
         ParamSpec("rack_pinion.mesh_stiffness_nm_per_rad", "N·m/rad", 2e4, 5e3, 1e5, "fixed",
@@ -160,6 +166,12 @@ def _build_specs() -> list[ParamSpec]:
         ParamSpec("tie_rods.coulomb_friction.level", "N", 0.0, 0.0, 2000.0, "effect", "tie_rods"),
         ParamSpec("tie_rods.regularisation_velocity_m_per_s", "m/s", 2e-5, 2e-5, 2e-5, "fixed",
                   "tie_rods"),
+    ]
+
+
+def _cogging_and_ratio_specs() -> list[ParamSpec]:
+    """A motor cogging and a variable-ratio rack: fixed, outside the catalogue."""
+    return [
         # not a catalogue effect: a motor cogging, a torque ripple periodic in the motor
         # angle, a·sin(N·θ) + b·cos(N·θ). Held at 0 by identification; the bench plants it
         # (``--cogging-nm``: a), and discovery refits it at the order it reads in the
@@ -171,19 +183,36 @@ def _build_specs() -> list[ParamSpec]:
         # rack's travel per pinion radian r·(1 + a·θ²) with θ the pinion angle in rad
         ParamSpec("rack_pinion.ratio_variation_per_rad2", "1/rad²", 0.0, 0.0, 0.0, "fixed",
                   "rack_pinion"),
+    ]
+
+
+def _assist_specs() -> list[ParamSpec]:
+    """The power assist's curve and active damping."""
+    return [
         # power assist (seed 001): A(T) = c1·T + c2·sign(T)·|T|^c3 (EPS) or c1·sign(T)·(e^|T| − 1) (HPS)
         ParamSpec("assist.family", "-", 0.0, 0.0, 1.0, "fixed", "motor"),
         ParamSpec("assist.c1", "-", 1.5, 0.0, 20.0, "base", "motor"),
         ParamSpec("assist.c2", "N·m^(1-c3)", 0.5, 0.0, 20.0, "base", "motor"),
         ParamSpec("assist.c3", "-", 2.0, 1.0, 4.0, "base", "motor"),
         ParamSpec("assist.active_damping_nms_per_rad", "N·m·s/rad", 0.0, 0.0, 2.0, "base", "motor"),
-        # campaign-wide sensor offsets
+    ]
+
+
+def _offset_specs() -> list[ParamSpec]:
+    """Campaign-wide sensor offsets."""
+    return [
         ParamSpec("offset.steering_torque_nm", "N·m", 0.0, -2.0, 2.0, "offset", "torsion_bar"),
         ParamSpec("offset.rack_position_m", "m", 0.0, -0.01, 0.01, "offset", "rack"),
         ParamSpec("offset.tie_rod_force_left_n", "N", 0.0, -500.0, 500.0, "offset", "tie_rods"),
         ParamSpec("offset.tie_rod_force_right_n", "N", 0.0, -500.0, 500.0, "offset", "tie_rods"),
         ParamSpec("offset.motor_angle_rad", "rad", 0.0, -10.0, 10.0, "offset", "motor"),
         ParamSpec("offset.motor_current_a", "A", 0.0, -5.0, 5.0, "offset", "motor"),
+    ]
+
+
+def _rival_specs() -> list[ParamSpec]:
+    """A sensor lag and a campaign drift: fixed, refitted only as rivals of a finding."""
+    return [
         # not a catalogue effect: the torque sensor's own filter, a first-order lag (eps-model.md:
         # "a torque sensor's own filter lags by a few ms"). Held at 0 by identification; the
         # structure rounds refit it as a rival of the measurement, never a name
@@ -195,7 +224,15 @@ def _build_specs() -> list[ParamSpec]:
         # winner, never a name (``ModelDefinition.campaign_drift``)
         ParamSpec(FRICTION_DRIFT, "-", 0.0, -0.8, 0.8, "fixed", "rack"),
     ]
-    return s
+
+
+def _build_specs() -> list[ParamSpec]:
+    """Every parameter, in the order of the flat vector the kernel addresses."""
+    s: list[ParamSpec] = _known_specs() + _stiffness_damping_specs()
+    for elem in FRICTION_ELEMENTS:
+        s += _friction_block(elem)
+    return (s + _effect_specs() + _cogging_and_ratio_specs() + _assist_specs()
+            + _offset_specs() + _rival_specs())
 
 
 PARAM_SPECS: tuple[ParamSpec, ...] = tuple(_build_specs())
