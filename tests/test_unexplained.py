@@ -342,7 +342,7 @@ def test_a_cogging_beside_a_backlash_is_not_named_stick_slip(tmp_path_factory):
         [f.evidence for f in result.findings]
 
 
-@pytest.mark.slow  # ~3 min
+@pytest.mark.slow  # ~1.5 min
 def test_a_drift_no_winner_came_near_is_described(tmp_path_factory):
     """Realistic rig 2507 (drawn rig, coloured noise, a torque lag): the Coulomb levels fall
     30 % as the rig warms up, and nothing else. No catalogue candidate cleared the margin

@@ -133,9 +133,8 @@ def _describe(state: DiscoveryState) -> None:
     ``unexplained`` finding for the structured ones."""
     state.measure_floors("unexplained round")  # at the extended model
     found_rivals, physics = rival_findings(state)
-    state.findings += found_rivals
+    state.findings += found_rivals  # a drift found there is not screened again
     drifts, with_drift = drift_findings(state, state.p if physics is None else physics)
-    found_rivals += drifts
     physics = physics if with_drift is None else with_drift
     ripples, with_ripple = ripple_findings(state, state.p if physics is None else physics)
     state.findings += drifts + ripples
