@@ -621,7 +621,7 @@ def test_extension_falls_back_to_the_cascade_restarts(monkeypatch, quick_cost, e
 
     runs: list[int] = []
 
-    def cascade(campaign, settings, ids, scales, starts, extra_free):
+    def cascade(campaign, settings, ids, scales, starts, extra_free, work_reference=None):
         runs.append(settings.multistart)
         cost = quick_cost if settings.multistart == 1 else 0.5
         return np.full(2, float(settings.multistart)), cost
@@ -669,7 +669,7 @@ def test_extension_keeps_its_start_when_the_cascade_ends_worse(monkeypatch):
     0.00762 against the base's 0.00413)."""
     from mbst.identify.cascade import Cascade, IdentifySettings
 
-    def cascade(campaign, settings, base, extra_free):
+    def cascade(campaign, settings, base, extra_free, work_reference=None):
         return Cascade(base + 1.0, [], {}, [], {})  # the cascade moves every parameter
 
     def cost(ids, p, scales, decimate=2):

@@ -303,3 +303,75 @@ def test_a_fit_stops_at_its_work_budget_where_its_step_shrinks(tests_and_truth, 
     first = 0.5 * float(np.sum(prob.residuals(prob.u_of(start)) ** 2))
     assert fr.cost < 0.5 * first  # it kept the best point it reached, not its start
     assert fr.p[j] > 1.5 * start[j]
+
+
+def _costly_stage(tests, p):
+    """Two free tie-rods tests whose step grows with the tyre Stribeck ratio (as the EPS
+    kernel's does with a dip's slope), a start at 22× the base's step with the rack level
+    off, and the base: the ratio at 1."""
+    model = tests[0].model
+    k = model.param_index["tires.stribeck_friction.static_to_coulomb_ratio"]
+    costly = replace(model, row_steps=lambda pt, ps: 20.0 * np.atleast_2d(ps)[:, k])
+    stage = [replace(pt, model=costly) for pt in tests if pt.scenario == "free_tie_rods"][:2]
+    start, base = p.copy(), p.copy()
+    start[k], base[k] = 22.0, 1.0
+    start[model.param_index["rack.coulomb_n"]] *= 0.5  # something left to fit
+    return costly, stage, start, base
+
+def test_a_stage_with_a_costly_effect_is_budgeted_at_the_reference_step(tests_and_truth,
+                                                                        monkeypatch):
+    """An extension's stage whose effect needs a far finer step than the base model (a
+    tyre Stribeck dip: 89 sub-steps a sample against 4 on realistic rig 2704, where one
+    extended cascade ran 24 min in that stage) spends what a candidate's refit may, counted
+    at the reference's step, not its evaluation budget at its own; without a reference the
+    same stage spends about twice as much here (more where the fit converges slower)."""
+    import mbst.identify.cascade as cascade_mod
+    from mbst.identify.cascade import IdentifySettings
+
+    tests, p = tests_and_truth
+    costly, stage, start, reference = _costly_stage(tests, p)
+    made: list[FitProblem] = []
+
+    class Recorded(FitProblem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(cascade_mod, "FitProblem", Recorded)
+    settings = IdentifySettings(max_nfev=20, multistart=1)
+    free = ["rack.coulomb_n", "rack.viscous_ns_per_m"]
+
+    def spent(ref):
+        made.clear()
+        cascade_mod._fit_stage(costly, "free_tie_rods", stage, free, start,
+                               channel_scales(tests), {}, settings,
+                               np.random.default_rng(0), reference=ref)
+        prob = made[-1]
+        return prob.work.spent, prob.budget(settings.max_nfev), prob.steps(start[None])
+
+    bounded, budget, per_evaluation = spent(reference)
+    unbounded, _, _ = spent(None)
+    assert bounded <= budget + per_evaluation  # the evaluation that crossed it is not run
+    assert budget == pytest.approx(
+        fitting_mod.WORK_BUDGET_FACTOR * 20 * (2 + len(free)) * per_evaluation / 22.0)
+    assert unbounded > 1.5 * bounded
+
+
+def test_a_rounds_fits_count_their_work_at_the_base_models_step(tests_and_truth):
+    """After an effect whose step is far finer than the base model's is accepted, a later
+    round's fits in its stage (the base refit, each candidate's) are budgeted at the base
+    model's step when discovery says so (``StageScorer(work_reference=…)``), not at the
+    model as it stands (realistic rig 2704: a tyre Stribeck dip, 22× the base's step)."""
+    from mbst.discovery.structure import StageScorer
+
+    tests, p = tests_and_truth
+    _, stage, current, base = _costly_stage(tests, p)
+    scales = channel_scales(tests)
+    own = StageScorer(stage, "free_tie_rods", current, scales)
+    told = StageScorer(stage, "free_tie_rods", current, scales, work_reference=base)
+    mine, theirs = own.problem(own.stage_free, current), told.problem(told.stage_free, current)
+    fitting_mod.solve(mine, [current], max_nfev=15)
+    fitting_mod.solve(theirs, [current], max_nfev=15)
+    assert theirs.budget(15) == pytest.approx(mine.budget(15) / 22.0)
+    per_evaluation = theirs.steps(current[None])
+    assert theirs.work.spent <= theirs.budget(15) + per_evaluation < mine.work.spent

@@ -125,8 +125,10 @@ def clean_compact_state(tmp_path_factory):
     recipe = BenchRecipe(effects=[], seed=1, plan=compact_plan())
     camp = read_campaign(run_bench(tmp_path_factory.mktemp("clean"), recipe))
     ids = [prepare_test(camp, s, 0.005) for s in camp.identification_tests()]
-    return SimpleNamespace(model=EPS_MODEL, ids=ids, p=recipe.true_params(), p_searched=None,
-                           scales=channel_scales(ids), base=SimpleNamespace(preid={"upper": {}}),
+    p = recipe.true_params()
+    return SimpleNamespace(model=EPS_MODEL, ids=ids, p=p, p_searched=None,
+                           scales=channel_scales(ids),
+                           base=SimpleNamespace(preid={"upper": {}}, params=p),
                            settings=DiscoverSettings(), compensating=dict,
                            model_free=lambda stage: None)
 

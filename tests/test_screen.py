@@ -163,7 +163,7 @@ def test_a_later_round_refits_the_effects_already_accepted_with_its_candidates(t
     p[EPS_MODEL.param_index[ratio]] = 1.75  # accepted in round 1, too large
     state = SimpleNamespace(
         settings=DiscoverSettings(), model=EPS_MODEL, ids=ids, p=p, scales=channel_scales(ids),
-        base=SimpleNamespace(preid={"upper": {}}), compensating=dict,
+        base=SimpleNamespace(preid={"upper": {}}, params=p), compensating=dict,
         cascade_free={STAGE: EPS_MODEL.stage_free()[STAGE]}, extra_free={STAGE: (ratio,)})
     state.model_free = lambda stage: DiscoveryState.model_free(state, stage)
     scorer = catalogue.stage_scorer(state, STAGE)

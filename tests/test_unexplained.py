@@ -701,7 +701,8 @@ def test_a_law_read_beside_a_stiffness_on_its_bound_says_so():
 
     name = "worm_gear.stiffness_nm_per_rad"
     p = EPS_MODEL.vector_from({name: EPS_MODEL.spec(name).lower})
-    state = SimpleNamespace(model=EPS_MODEL, p=p, base=SimpleNamespace(preid={"upper": {}}),
+    state = SimpleNamespace(model=EPS_MODEL, p=p,
+                            base=SimpleNamespace(preid={"upper": {}}, params=p),
                             model_free=lambda stage: [name, "rack.coulomb_n"])
     law = SimpleNamespace(best=SimpleNamespace(group="polynomial:torsion_bar_torque_nm",
                                                scenarios=("free_tie_rods",)))

@@ -22,19 +22,21 @@ from mbst.io.campaign import Campaign
 
 def extended_cascade(campaign: Campaign, settings: IdentifySettings,
                       ids: list[PreparedTest], scales: dict[str, float],
-                      starts: list[np.ndarray | None], extra_free: dict[str, tuple[str, ...]]
-                      ) -> tuple[np.ndarray, float]:
+                      starts: list[np.ndarray | None], extra_free: dict[str, tuple[str, ...]],
+                      work_reference: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The cascade refitted with an effect free from each start; the lowest identification cost.
 
     The starts compete too: a start is the base fit with one stage refitted around the
     effect, already a complete extended model, and a stage-by-stage cascade from it can
     land in a worse basin (powered backlash: start 0.00163, cascade 0.00762, base 0.00413).
+    ``work_reference``: the model the stages' work budgets are counted at (``run_cascade``).
     """
     best: tuple[np.ndarray, float] | None = None
     for start in starts:
         if start is None:
             continue
-        p = run_cascade(campaign, settings, base=start, extra_free=extra_free).params
+        p = run_cascade(campaign, settings, base=start, extra_free=extra_free,
+                        work_reference=work_reference).params
         for q in (p, start):
             cost, _ = total_cost(ids, q, scales, settings.decimate)
             if best is None or cost < best[1]:
@@ -44,8 +46,8 @@ def extended_cascade(campaign: Campaign, settings: IdentifySettings,
 
 def extend(campaign: Campaign, settings: IdentifySettings, ids: list[PreparedTest],
             scales: dict[str, float], starts: list[np.ndarray | None],
-            extra_free: dict[str, tuple[str, ...]], cost_to_beat: float
-            ) -> tuple[np.ndarray, float]:
+            extra_free: dict[str, tuple[str, ...]], cost_to_beat: float,
+            work_reference: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The extended cascade: quick from the deliberate starts, with restarts if that fails.
 
     First from the two deliberate starts only (the winner's fit, its reset
@@ -53,12 +55,16 @@ def extend(campaign: Campaign, settings: IdentifySettings, ids: list[PreparedTes
     time (demo: 26 → 10 s, same result). Where that does not lower the
     identification cost below ``cost_to_beat``, the cascade runs again with its
     own restarts (a powered campaign without the current needed them).
+    ``work_reference``: the base model, at whose step the stages' work is budgeted: an
+    effect whose step is far finer than the base's (a tyre Stribeck dip) spends no more
+    in the extension than a candidate's refit may (``work.py``).
     """
     p, cost = extended_cascade(campaign, replace(settings, multistart=1), ids, scales,
-                                starts, extra_free)
+                                starts, extra_free, work_reference)
     if cost < cost_to_beat or settings.multistart <= 1:
         return p, cost
-    return extended_cascade(campaign, settings, ids, scales, starts, extra_free)
+    return extended_cascade(campaign, settings, ids, scales, starts, extra_free,
+                            work_reference)
 
 
 def reset_extension_start(scorer: StageScorer, best: CandidateScore, spec
@@ -89,4 +95,5 @@ def rival_through_cascade(state: DiscoveryState, score: CandidateScore
     trial_free[score.stage] = tuple(trial_free.get(score.stage, ())) + tuple(
         n for n in score.free if n in rivals.parameters(state.model))
     return extended_cascade(state.campaign, replace(state.settings.identify, multistart=1),
-                            state.ids, state.scales, [score.params], trial_free)
+                            state.ids, state.scales, [score.params], trial_free,
+                            state.base.params)

@@ -190,6 +190,11 @@ class StageScorer:
         cost refines also from the handbook start with what the base fit
         inflated for the missing effect (``EffectSpec.absorbed_by``) back at
         its typical value. ``None``: no such start.
+    work_reference
+        The parameters at whose integration step every fit's work budget is counted
+        (``identify/work.py``); discovery gives the base model, so an accepted effect
+        whose step is far finer (a tyre Stribeck dip: 22×) does not raise the budget of
+        every later fit in its stage. ``None``: each fit's own start.
     """
 
     def __init__(self, tests: list[PreparedTest], stage: str, base: np.ndarray,
@@ -197,7 +202,8 @@ class StageScorer:
                  decimate: int = 2, max_nfev: int = 15, starts: int = 1,
                  reset: dict[str, float] | None = None,
                  free: list[str] | tuple[str, ...] | None = None,
-                 evidence_gain: float | None = None) -> None:
+                 evidence_gain: float | None = None,
+                 work_reference: np.ndarray | None = None) -> None:
         self.tests = tests
         self.stage = stage
         self.base = np.array(base, float)
@@ -222,6 +228,7 @@ class StageScorer:
         # a screened candidate removing at least this share refines from one more start
         # (``EffectSpec.absorbed_by``); None: never
         self.evidence_gain = evidence_gain
+        self.work_reference = work_reference
         self._base_fit: tuple[np.ndarray, float] | None = None
         self._base_per_test: np.ndarray | None = None
         self._speeds: dict[str, np.ndarray] = {}
@@ -231,8 +238,11 @@ class StageScorer:
                 bounds: dict[str, tuple[float, float]] | None = None) -> FitProblem:
         tests = tests if tests is not None else self.tests
         lower, upper = self._bounds(bounds)
-        return FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p0,
+        prob = FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p0,
                           self.scales, lower=lower, upper=upper, decimate=self.decimate)
+        if self.work_reference is not None:
+            prob.reference_steps = prob.steps(self.work_reference[None])
+        return prob
 
     def _bounds(self, bounds: dict[str, tuple[float, float]] | None
                 ) -> tuple[dict[str, float], dict[str, float]]:

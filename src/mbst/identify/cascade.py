@@ -173,6 +173,7 @@ def run_cascade(
     base: np.ndarray | None = None,
     extra_free: dict[str, tuple[str, ...]] | None = None,
     only: set[str] | None = None,
+    work_reference: np.ndarray | None = None,
 ) -> Cascade:
     """Fit the identification tests stage by stage; return the parameter vector and records.
 
@@ -180,6 +181,9 @@ def run_cascade(
     of a scenario: discovery uses it to refit an extended model. ``only``
     restricts the fit to these parameters (and the sensor offsets), the rest
     staying at ``base``: the planner's proof identifies just a plan's unknowns.
+    ``work_reference``: the parameters at whose integration step each stage's work
+    budget is counted (``work.py``; discovery: the base model, without the effects);
+    by default each stage's start.
     """
     id_specs = campaign.identification_tests()
     if not id_specs:
@@ -220,7 +224,7 @@ def run_cascade(
                 warnings.append(f"test '{pt.id}' ({scenario}) informs no free parameter")
             continue
         p, stage, notes = _fit_stage(model, scenario, tests, free, p, scales, preid["upper"],
-                                     settings, rng, stated=stated)
+                                     settings, rng, stated=stated, reference=work_reference)
         fixed.update(free)
         stages.append(stage)
         warnings += notes
@@ -230,7 +234,8 @@ def run_cascade(
         # a stage sees only its own cut-out, the joint information sees them all
         free = list(dict.fromkeys(n for st in stages for n in st.free))
         p, stage, notes = _fit_stage(model, JOINT_STAGE, id_tests, free, p, scales,
-                                     preid["upper"], settings, rng, stated=stated)
+                                     preid["upper"], settings, rng, stated=stated,
+                                     reference=work_reference)
         stages.append(stage)
         warnings += notes
         _progress(settings, stage)
@@ -311,16 +316,22 @@ def _progress(settings: IdentifySettings, stage: StageResult) -> None:
 def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest], free: list[str],
                p: np.ndarray, scales: dict[str, float], upper: dict[str, float],
                settings: IdentifySettings, rng: np.random.Generator,
-               stated: frozenset[str] = frozenset()
+               stated: frozenset[str] = frozenset(), reference: np.ndarray | None = None
                ) -> tuple[np.ndarray, StageResult, list[str]]:
     """Fit ``free`` on ``tests`` from ``p`` (plus random restarts); flag bounds and blind spots.
 
     ``stated``: parameters whose prior the campaign states (it counts in their std errors).
+    ``reference``: where the work budget's step is counted (``run_cascade``).
     """
     t0 = time.perf_counter()
     prob = FitProblem(tests, {pt.id: stage_channels(pt) for pt in tests}, free, p, scales,
                       upper=upper, decimate=settings.decimate, prior=settings.prior,
                       stated=stated)
+    if reference is not None:
+        # an effect whose step is far finer than the model's before it (a tyre Stribeck
+        # dip: 89 sub-steps a sample against 4) would otherwise set its own budget, and
+        # one extension ran 24 min in that stage (realistic rig 2704)
+        prob.reference_steps = prob.steps(reference[None])
     p_start = p.copy()
 
     def random_start() -> np.ndarray:

@@ -52,7 +52,7 @@ def _stage_scorer(state: DiscoveryState, stage: str, free: list[str]) -> StageSc
     return StageScorer(state.model.stage_tests(stage, state.ids), stage, state.p,
                        state.scales, state.base.preid["upper"],
                        state.settings.identify.decimate, reset=state.compensating(),
-                       free=free)
+                       free=free, work_reference=state.base.params)
 
 
 def _still_needed(state: DiscoveryState, key: str) -> tuple[dict, np.ndarray]:
@@ -88,7 +88,7 @@ def _drop(state: DiscoveryState, key: str, row: dict, p_without: np.ndarray) -> 
                   for st, names in state.extra_free.items()}
     p, cost = extension.extend(state.campaign, state.settings.identify, state.ids,
                                state.scales, [p_without], trial_free,
-                               float("inf"))
+                               float("inf"), work_reference=state.base.params)
     log.info("backward check: %s dropped (%.1f %% of its stage, ΔAIC %.0f)", key,
              100 * row["relative_gain"], row["aic_delta"])
     state.accepted.remove(key)

@@ -278,7 +278,7 @@ def stage_scorer(state: DiscoveryState, stage: str, base: np.ndarray | None = No
                        REFINE_NFEV, reset=state.compensating(),
                        free=state.model_free(stage),
                        evidence_gain=acceptance.EVIDENCE_SHARE_OF_MARGIN
-                       * settings.min_relative_gain)
+                       * settings.min_relative_gain, work_reference=state.base.params)
 
 
 def _warn_fell_back(rnd: int, scores: list[CandidateScore]) -> None:
@@ -509,7 +509,7 @@ def _extend(state: DiscoveryState, scorer: StageScorer, best: CandidateScore,
     start = extension.reset_extension_start(scorer, best, spec)
     p_ext, cost_ext = extension.extend(state.campaign, state.settings.identify, state.ids,
                                        state.scales, [best.params, start], trial_free,
-                                       state.cost)
+                                       state.cost, work_reference=state.base.params)
     if cost_ext >= state.cost:
         rec["reason"] = (f"{best.key} won its stage but the refitted cascade did not lower "
                          f"the identification cost ({cost_ext:.4g} ≥ {state.cost:.4g})")
