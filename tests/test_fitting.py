@@ -318,6 +318,7 @@ def _costly_stage(tests, p):
     start[model.param_index["rack.coulomb_n"]] *= 0.5  # something left to fit
     return costly, stage, start, base
 
+
 def test_a_stage_with_a_costly_effect_is_budgeted_at_the_reference_step(tests_and_truth,
                                                                         monkeypatch):
     """An extension's stage whose effect needs a far finer step than the base model (a

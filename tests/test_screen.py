@@ -168,6 +168,8 @@ def test_a_later_round_refits_the_effects_already_accepted_with_its_candidates(t
     state.model_free = lambda stage: DiscoveryState.model_free(state, stage)
     scorer = catalogue.stage_scorer(state, STAGE)
     assert ratio in scorer.stage_free
+    # its fits' work is counted at the base model's step, not the model's as it stands
+    assert scorer.work_reference is state.base.params
     gap = scorer.score(EPS_MODEL.effects["backlash:worm_gear"], 1000.0, max_nfev=5)
     # measured 2026-11-26: 61.9 % of the stage and the ratio back at 1.27; held at 1.75,
     # 9.7 % at a width of 0.0034 rad

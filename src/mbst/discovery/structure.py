@@ -240,8 +240,7 @@ class StageScorer:
         lower, upper = self._bounds(bounds)
         prob = FitProblem(tests, {pt.id: list(pt.measured) for pt in tests}, free, p0,
                           self.scales, lower=lower, upper=upper, decimate=self.decimate)
-        if self.work_reference is not None:
-            prob.reference_steps = prob.steps(self.work_reference[None])
+        prob.count_work_at(self.work_reference)
         return prob
 
     def _bounds(self, bounds: dict[str, tuple[float, float]] | None

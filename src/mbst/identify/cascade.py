@@ -327,11 +327,10 @@ def _fit_stage(model: ModelDefinition, scenario: str, tests: list[PreparedTest],
     prob = FitProblem(tests, {pt.id: stage_channels(pt) for pt in tests}, free, p, scales,
                       upper=upper, decimate=settings.decimate, prior=settings.prior,
                       stated=stated)
-    if reference is not None:
-        # an effect whose step is far finer than the model's before it (a tyre Stribeck
-        # dip: 89 sub-steps a sample against 4) would otherwise set its own budget, and
-        # one extension ran 24 min in that stage (realistic rig 2704)
-        prob.reference_steps = prob.steps(reference[None])
+    # an effect whose step is far finer than the model's before it (a tyre Stribeck dip:
+    # 89 sub-steps a sample against 4) would otherwise set its own budget, and one
+    # extension ran 24 min in that stage (realistic rig 2704)
+    prob.count_work_at(reference)
     p_start = p.copy()
 
     def random_start() -> np.ndarray:

@@ -418,6 +418,12 @@ class FitProblem:
         """Integration steps of simulating the rows ``ps`` on every test (``work.py``)."""
         return sum(simulation_steps(pt, ps) for pt in self.tests)
 
+    def count_work_at(self, reference: np.ndarray | None) -> None:
+        """Budget this problem's work at ``reference``'s step instead of its base's
+        (``work.py``); ``None`` leaves the base."""
+        if reference is not None:
+            self.reference_steps = self.steps(np.asarray(reference, float)[None])
+
     def budget(self, max_nfev: int) -> float:
         """The steps a run of ``max_nfev`` evaluations may spend: ``WORK_BUDGET_FACTOR`` ×
         what they cost at the reference step, each with its Jacobian."""
