@@ -777,6 +777,80 @@ def test_a_failing_evidence_method_is_recorded_not_raised(play, monkeypatch):
         "FloatingPointError: planted"
 
 
+def _play_campaign(tmp_path):
+    """The ``play`` fixture's campaign (a play in the friction damper's band)."""
+    return read_campaign(run_friction_damper_bench(
+        tmp_path, {"band.backlash.width_m": 1.2e-3}, seed=3))
+
+
+def _planted_failure(calls: list[int], at: int, real):
+    """``real`` that raises a planted error on its ``at``-th call (counted in ``calls``)."""
+    def broken(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == at:
+            raise FloatingPointError("planted")
+        return real(*args, **kwargs)
+    return broken
+
+
+def test_a_structure_round_that_fails_is_undone_and_said(tmp_path, monkeypatch):
+    """#30, no answer lost: a round that raises after its extension changed the model (here
+    in its ranking bootstrap) is undone — the model back at the base, no finding — and the
+    page says that a round failed, not that the base model is at the noise floor."""
+    camp = _play_campaign(tmp_path)
+    calls: list[int] = []
+    monkeypatch.setattr(acceptance, "ranking_bootstrap",
+                        _planted_failure(calls, 1, acceptance.ranking_bootstrap))
+    result = discover(camp, DiscoverSettings(max_effects=1, neural=False, sparse=False))
+    assert calls, "the planted failure was never reached"
+    # the play stays in the residual: the later rounds describe it, at no more than even
+    # odds, as what a catalogue search that did not run through may have named
+    assert [f.effect for f in result.findings if f.effect != "unexplained"] == []
+    assert all(f.confidence <= 0.5 and f.evidence.startswith("CATALOGUE NOT SEARCHED")
+               for f in result.findings)
+    np.testing.assert_array_equal(result.extended_params, result.base.params)
+    assert result.failures[0].startswith("structure round 1: FloatingPointError: planted")
+    assert result.rounds[0]["failed"] == "FloatingPointError: planted"
+    write_discover_outputs(result, tmp_path / "out")
+    page = (tmp_path / "out" / "discovery.md").read_text()
+    assert "## What failed" in page and "structure round 1: FloatingPointError" in page
+    rec = json.loads((tmp_path / "out" / "discovery.json").read_text())
+    assert rec["failures"] == result.failures
+    assert len(rec["findings"]) == len(result.findings)
+    # with no finding at all the page says a round failed, not that the base model is at
+    # the noise floor
+    empty = dataclasses.replace(result, findings=[])
+    write_discover_outputs(empty, tmp_path / "empty")
+    page = (tmp_path / "empty" / "discovery.md").read_text()
+    assert "No finding: a structure round failed" in page
+    assert "down to the noise floor" not in page
+
+
+def test_a_later_round_that_fails_keeps_the_findings_before_it(play, tmp_path, monkeypatch):
+    """#30: a failure in a later structure round or in another of the family's rounds costs
+    that round only: the play the first round named stands, with its extended model."""
+    camp, _, named = play
+    calls: list[int] = []
+    import mbst.discovery.rounds.catalogue as catalogue_mod
+
+    # the second round's screen fails; the first round's proposal stands
+    monkeypatch.setattr(catalogue_mod, "_screen",
+                        _planted_failure(calls, 2, catalogue_mod._screen))
+
+    def broken(state):
+        raise KeyError("planted")
+
+    monkeypatch.setitem(pipeline_mod.ROUNDS, "resolution", broken)
+    result = discover(camp, DiscoverSettings(max_effects=2, neural=False))
+    assert len(calls) == 2, "the second round's screen was never reached"
+    assert [(f.effect, f.component) for f in result.findings] == [("backlash", "band")]
+    np.testing.assert_allclose(result.extended_params, named.extended_params, rtol=1e-9)
+    assert [f.split(";")[0] for f in result.failures] == [
+        "structure round 2: FloatingPointError: planted", "resolution round: KeyError: 'planted'"]
+    assert result.rounds[1]["round"] == 2 and result.rounds[1]["accepted"] is None
+    assert result.resolution == []
+
+
 class _TableScorer:
     """A stage whose per-sample costs are given: row 0 the base, row i candidate i."""
 

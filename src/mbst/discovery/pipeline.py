@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mbst.discovery.acceptance import fold_one_body
+from mbst.discovery.acceptance import EVEN_ODDS, fold_one_body
 from mbst.discovery.compare import Learned, compare, mean_gain
 from mbst.discovery.data import TestResidual, residual_data
 from mbst.discovery.evidence.collect import NeuralJob, sparse_evidence
@@ -208,11 +208,23 @@ def discover(campaign: Campaign, settings: DiscoverSettings | None = None,
     try:
         for name in base.model.discovery_rounds:
             if settings.wants(base.model, name):
-                ROUNDS[name](state)
+                _run_round(name, state)
         return _conclude(state, locations, neural_job, t_start)
     finally:
         if neural_job is not None:
             neural_job.close()
+
+
+def _run_round(name: str, state: DiscoveryState) -> None:
+    """One of the family's rounds; where it raises, the state goes back to what the rounds
+    before it left and the failure is reported: a round that fails on a campaign nobody
+    foresaw costs its own answer only, never the ones already found (#30)."""
+    saved = state.checkpoint()
+    try:
+        ROUNDS[name](state)
+    except Exception as exc:
+        state.restore(saved)
+        state.failed(f"{name.replace('_', ' ')} round", exc)
 
 
 def _base_model(campaign: Campaign, settings: DiscoverSettings, base_fit: dict | None
@@ -238,7 +250,21 @@ def _named(state: DiscoveryState, sparse_ev: dict | None, neural_ev: dict | None
     findings = fold_one_body(findings + state.findings, state.residuals, state.model)
     state_body_sizes(findings, state.residuals, state.model, state.p)
     state_size_precision(findings, state)
+    if any(f.startswith("structure round") for f in state.failures):
+        _catalogue_not_searched(findings)
     return findings
+
+
+def _catalogue_not_searched(findings: list[Finding]) -> None:
+    """Where a structure round failed, the catalogue was not searched through: what the
+    later rounds read as outside it may be a catalogue effect that round would have named
+    (the damper's play, read as unexplained at 0.93 once its round had failed)."""
+    for f in findings:
+        if f.effect == "unexplained":
+            f.evidence = ("CATALOGUE NOT SEARCHED THROUGH: a structure round failed (\"What "
+                          "failed\"), so this may be a catalogue effect that round would have "
+                          f"named; at most even odds. {f.evidence}")
+            f.confidence = min(f.confidence, EVEN_ODDS)
 
 
 def _conclude(state: DiscoveryState, locations: list[dict], neural_job: NeuralJob | None,

@@ -6,6 +6,7 @@ into it; the pipeline loops over the family's rounds and never reaches inside th
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from dataclasses import dataclass, field
@@ -28,6 +29,11 @@ from mbst.identify.fitting import (
 from mbst.io.campaign import Campaign
 
 log = logging.getLogger(__name__)
+
+# what a round may change in the state: put back when it fails (``DiscoveryState.checkpoint``)
+_ROUND_MUTABLE = ("residuals", "p", "cost", "accepted", "extra_free", "rounds", "proposals",
+                  "findings", "resolution", "signatures", "extended_residuals",
+                  "rival_physics", "p_searched")
 
 if TYPE_CHECKING:
     from mbst.discovery.structure import CandidateScore
@@ -216,6 +222,23 @@ class DiscoveryState:
         held = set(self.base.preid.get("held", {}))
         names = [n for _, stage in self.model.cascade for n in stage if n not in held]
         return compensating_parameters(self.p, names, self.model)
+
+    def checkpoint(self) -> dict[str, object]:
+        """What the rounds change, copied, so that a round that fails can be undone
+        (``restore``): the answer of the rounds before it then stands as they left it."""
+        return {name: copy.copy(getattr(self, name)) for name in _ROUND_MUTABLE}
+
+    def restore(self, saved: dict[str, object]) -> None:
+        for name, value in saved.items():
+            setattr(self, name, value)
+
+    def failed(self, step: str, exc: Exception) -> str:
+        """Report a round (or a step of one) that raised: in the log with its traceback and
+        in ``failures`` (discovery.md, "What failed"); returns the one-line reason."""
+        reason = f"{type(exc).__name__}: {exc}"
+        log.error("%s failed (%s); the rounds before it stand", step, reason, exc_info=exc)
+        self.failures.append(f"{step}: {reason}; the answer of the rounds before it stands")
+        return reason
 
     def measure_typical_speeds(self, step: str) -> None:
         """Each identification residual's element speeds with what the base fit compensated

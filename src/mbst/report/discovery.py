@@ -212,6 +212,10 @@ def markdown_summary(result: DiscoveryResult) -> str:
         lines += [""] + [f"- **{f.effect} / {_where(f)}**: {f.evidence}"
                          for f in result.findings]
         lines += controls_below_base_lines(result)
+    elif any(f.startswith("structure round") for f in result.failures):
+        lines.append("No finding: a structure round failed before it could name anything "
+                     "(\"What failed\", below), so this is not a statement that the base "
+                     "model is at the noise floor.")
     elif any(r.get("rival_declined") for r in result.rounds):
         lines.append("No finding: no catalogue effect is named. What a stage's winner "
                      "took was matched as well by a reality outside the catalogue (a sensor, "

@@ -60,14 +60,35 @@ def structure_rounds(state: DiscoveryState) -> None:
     bar = _progress_bar(state.settings.progress)
     nxt: NextRound | None = None
     for rnd in range(state.settings.max_effects):
-        nxt = _one_round(state, rnd, nxt, bar)
+        saved = state.checkpoint()
+        try:
+            nxt = _one_round(state, rnd, nxt, bar)
+        except Exception as exc:  # the rounds before it stand (``_failed_round``)
+            _failed_round(state, rnd, saved, exc)
+            nxt = None
         if nxt is None:
             break
     if bar is not None:
         bar.close()
-    backward_check(state)
+    saved = state.checkpoint()
+    try:
+        backward_check(state)
+    except Exception as exc:  # the effects stay in, unchecked, as the rounds accepted them
+        state.restore(saved)
+        state.failed("backward check", exc)
     state.p_searched = state.p.copy()
     state.timings["structure_s"] = time.perf_counter() - t0
+
+
+def _failed_round(state: DiscoveryState, rnd: int, saved: dict, exc: Exception) -> None:
+    """A round that raised is undone and stops the rounds: the model and the findings stay
+    as the rounds before it left them, and its record says why it stopped."""
+    state.restore(saved)
+    reason = state.failed(f"structure round {rnd + 1}", exc)
+    state.rounds.append({"round": rnd + 1, "candidates": [], "accepted": None,
+                         "failed": reason,
+                         "reason": f"the round failed ({reason}); the model and the findings "
+                                   "stand as the rounds before it left them"})
 
 
 def _one_round(state: DiscoveryState, rnd: int, this: NextRound | None, bar
