@@ -938,3 +938,24 @@ def test_an_output_folder_that_would_replace_the_campaign_is_refused_before_the_
         assert f"--out {out}" in err and words in err and "Traceback" not in err, err
     assert sorted(p.name for p in camp.rglob("*")) == before
     assert a_file.read_text() == "keep me"
+
+
+def test_a_fault_of_mbst_is_said_in_one_line_before_its_traceback(tmp_path, capsys,
+                                                                   monkeypatch):
+    """Never a bare traceback: an error that is mbst's own (here planted in the identify
+    step) is said first, naming the command and the error, then traced for a bug report;
+    the exit status tells it from bad input (2) and the output folder is not written."""
+    from mbst import cli
+    from mbst.report import identify as identify_report
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("planted")
+
+    monkeypatch.setattr(identify_report, "run_identify", broken)
+    camp = build(tmp_path)
+    assert cli.main(["identify", str(camp), "--out", str(tmp_path / "out"), "--quiet"]) == 3
+    err = capsys.readouterr().err
+    first, rest = err.split("\n", 1)
+    assert first == "mbst identify: internal error: ZeroDivisionError: planted", err
+    assert "fault in mbst, not in your data" in rest and "Traceback" in rest
+    assert not (tmp_path / "out").exists()

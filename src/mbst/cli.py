@@ -11,6 +11,7 @@ import json
 import math
 import os
 import sys
+import traceback
 from pathlib import Path
 from typing import TypeAlias
 
@@ -519,6 +520,12 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # a disk full or a folder that went away: said, not a traceback
         print(f"mbst {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except Exception as exc:  # a fault of mbst's, not of the input: said first, then traced
+        print(f"mbst {args.command}: internal error: {type(exc).__name__}: {exc}\n"
+              "This is a fault in mbst, not in your data. The traceback below is for a "
+              "bug report:", file=sys.stderr)
+        traceback.print_exc()
+        return 3
 
 
 if __name__ == "__main__":
