@@ -731,7 +731,7 @@ def test_a_stribeck_name_whose_stage_still_shakes_for_another_part_is_undecided(
 
     state = SimpleNamespace(rounds=[{"round": 1, "accepted": None}, rec], residuals=[],
                             model=SimpleNamespace(effects=effects), proposals=["round 1"],
-                            findings=[], p=np.zeros(1))
+                            findings=[], p=np.zeros(1), failures=[])
     monkeypatch.setattr(ss, "one_body_in_stage", lambda *a: one_body)
     monkeypatch.setattr(pipeline, "proposal_finding", lambda *a: finding)
     monkeypatch.setattr(pipeline, "fold_one_body", lambda findings, *a: findings)
