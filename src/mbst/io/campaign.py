@@ -793,6 +793,26 @@ def write_campaign(
         raise CampaignError(f"fmt must be 'csv' or 'parquet', got {fmt!r}", campaign=name)
     if target.exists() and not overwrite:
         raise CampaignError("already exists (pass overwrite=True)", campaign=name, path=target)
+    _check_tests_to_write(tests, name)
+    doc = _campaign_doc(name, system, known, priors, extra)
+    doc["tests"] = [_test_entry(spec, f"tests/{spec.id}.{fmt}", name) for spec, _ in tests]
+    tmp = target.parent / f".{target.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        _write_files(tmp, doc, tests, fmt)
+        _swap_into_place(tmp, target)
+    except CampaignError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    except Exception as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise CampaignError(
+            f"cannot write campaign: {type(exc).__name__}: {exc}", campaign=name, path=target
+        ) from exc
+    return target
+
+
+def _check_tests_to_write(tests: list[tuple[TestSpec, pd.DataFrame]], name: str) -> None:
+    """Writable, unique ids, each with a data frame."""
     seen: set[str] = set()
     for spec, frame in tests:
         _check_writable_id(spec.id, name)
@@ -806,6 +826,11 @@ def write_campaign(
                 test=spec.id,
             )
 
+
+def _campaign_doc(name: str, system: str, known: dict[str, float],
+                  priors: dict[str, float] | None, extra: dict | None) -> dict[str, Any]:
+    """``campaign.yaml``'s keys before ``tests``: a known value with a prior as
+    ``{value, sigma}``, then the extra keys (none may clash with the format's)."""
     doc: dict[str, Any] = {
         "format": FORMAT,
         "name": name,
@@ -818,30 +843,22 @@ def write_campaign(
         if key in _TOP_KEYS:
             raise CampaignError(f"extra key '{key}' clashes with a format key", campaign=name)
         doc[key] = value
-    doc["tests"] = [_test_entry(spec, f"tests/{spec.id}.{fmt}", name) for spec, _ in tests]
+    return doc
 
-    tmp = target.parent / f".{target.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        (tmp / "tests").mkdir(parents=True)
-        for spec, frame in tests:
-            out = tmp / "tests" / f"{spec.id}.{fmt}"
-            if fmt == "csv":
-                # Default float formatting is repr: shortest text that reads back exactly.
-                frame.to_csv(out, index=False)
-            else:
-                frame.to_parquet(out, index=False)
-        text = yaml.safe_dump(_plain(doc), sort_keys=False, allow_unicode=True)
-        (tmp / CAMPAIGN_FILE).write_text(text, encoding="utf-8")
-        _swap_into_place(tmp, target)
-    except CampaignError:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    except Exception as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise CampaignError(
-            f"cannot write campaign: {type(exc).__name__}: {exc}", campaign=name, path=target
-        ) from exc
-    return target
+
+def _write_files(tmp: Path, doc: dict[str, Any], tests: list[tuple[TestSpec, pd.DataFrame]],
+                 fmt: str) -> None:
+    """The campaign's files into the temporary folder ``tmp``."""
+    (tmp / "tests").mkdir(parents=True)
+    for spec, frame in tests:
+        out = tmp / "tests" / f"{spec.id}.{fmt}"
+        if fmt == "csv":
+            # Default float formatting is repr: shortest text that reads back exactly.
+            frame.to_csv(out, index=False)
+        else:
+            frame.to_parquet(out, index=False)
+    text = yaml.safe_dump(_plain(doc), sort_keys=False, allow_unicode=True)
+    (tmp / CAMPAIGN_FILE).write_text(text, encoding="utf-8")
 
 
 def _check_writable_id(test_id: str, campaign: str) -> None:
