@@ -777,12 +777,6 @@ def test_a_failing_evidence_method_is_recorded_not_raised(play, monkeypatch):
         "FloatingPointError: planted"
 
 
-def _play_campaign(tmp_path):
-    """The ``play`` fixture's campaign (a play in the friction damper's band)."""
-    return read_campaign(run_friction_damper_bench(
-        tmp_path, {"band.backlash.width_m": 1.2e-3}, seed=3))
-
-
 def _planted_failure(calls: list[int], at: int, real):
     """``real`` that raises a planted error on its ``at``-th call (counted in ``calls``)."""
     def broken(*args, **kwargs):
@@ -793,11 +787,11 @@ def _planted_failure(calls: list[int], at: int, real):
     return broken
 
 
-def test_a_structure_round_that_fails_is_undone_and_said(tmp_path, monkeypatch):
+def test_a_structure_round_that_fails_is_undone_and_said(play, tmp_path, monkeypatch):
     """#30, no answer lost: a round that raises after its extension changed the model (here
     in its ranking bootstrap) is undone — the model back at the base, no finding — and the
     page says that a round failed, not that the base model is at the noise floor."""
-    camp = _play_campaign(tmp_path)
+    camp, _, _ = play
     calls: list[int] = []
     monkeypatch.setattr(acceptance, "ranking_bootstrap",
                         _planted_failure(calls, 1, acceptance.ranking_bootstrap))
@@ -805,9 +799,9 @@ def test_a_structure_round_that_fails_is_undone_and_said(tmp_path, monkeypatch):
     assert calls, "the planted failure was never reached"
     # the play stays in the residual: the later rounds describe it, at no more than even
     # odds, as what a catalogue search that did not run through may have named
-    assert [f.effect for f in result.findings if f.effect != "unexplained"] == []
-    assert all(f.confidence <= 0.5 and f.evidence.startswith("CATALOGUE NOT SEARCHED")
-               for f in result.findings)
+    assert [f.effect for f in result.findings] == ["unexplained"]
+    assert result.findings[0].confidence <= acceptance.EVEN_ODDS
+    assert result.findings[0].evidence.startswith("CATALOGUE NOT SEARCHED THROUGH")
     np.testing.assert_array_equal(result.extended_params, result.base.params)
     assert result.failures[0].startswith("structure round 1: FloatingPointError: planted")
     assert result.rounds[0]["failed"] == "FloatingPointError: planted"

@@ -190,7 +190,7 @@ def failure_lines(failures: list[str]) -> list[str]:
     if not failures:
         return []
     return ["", "## What failed", "",
-            "The answer above stands; these parts of the evidence or report could not be made "
+            "The answer above stands; these rounds, evidence or report parts could not be made "
             "(details in the log):", ""] + [f"- {f}" for f in failures]
 
 
